@@ -1,0 +1,64 @@
+"""The camera interface: project points to pixels and back-project pixels to rays."""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._checks import as_points, batched
+
+
+class Ray(eqx.Module):
+    """A ray `origin + t · direction`, `t > 0`, in the camera frame (mm).
+
+    `direction` is a unit vector pointing into object space.
+    """
+
+    origin: Float[Array, "*batch 3"]
+    direction: Float[Array, "*batch 3"]
+
+
+class AbstractCamera(eqx.Module):
+    """A camera model: a pytree of parameters with a projection and its inverse.
+
+    Subclasses implement `project_one` and `backproject_one` for a single point; the
+    public `project` and `backproject` accept any leading batch shape and run them under
+    `jax.vmap`.
+
+    Pixel (0, 0) is the centre of the top-left pixel; u grows to the right, v downwards.
+    """
+
+    @abc.abstractmethod
+    def project_one(self, X: Float[Array, "3"]) -> tuple[Float[Array, "2"], Bool[Array, ""]]:
+        """Pixel of one camera-frame point and whether it is valid (in front of the camera)."""
+
+    @abc.abstractmethod
+    def backproject_one(self, uv: Float[Array, "2"]) -> Ray:
+        """The object-space ray of one pixel."""
+
+    def project(self, X: ArrayLike) -> Float[Array, "*batch 2"]:
+        """Pixels of camera-frame points (mm → px).
+
+        Points behind the camera give NaN; use `project_with_mask` to get the mask.
+        """
+        uv, valid = self.project_with_mask(X)
+        return jnp.where(valid[..., None], uv, jnp.nan)
+
+    def project_with_mask(
+        self, X: ArrayLike
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Pixels of camera-frame points and a mask of the valid ones.
+
+        The pixels of invalid points are returned unmasked (finite where the algebra
+        allows), which is what a least-squares residual needs.
+        """
+        X = as_points(X, 3, "X")
+        return batched(self.project_one, X, 1)
+
+    def backproject(self, uv: ArrayLike) -> Ray:
+        """Object-space rays of pixels; `Ray` fields have shape `(*batch, 3)`."""
+        uv = as_points(uv, 2, "uv")
+        return batched(self.backproject_one, uv, 1)

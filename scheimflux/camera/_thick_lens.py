@@ -1,0 +1,159 @@
+"""The thick-lens Scheimpflug camera of Guo, Cui & Wu (Sensors 2024), eqs. (5)–(12)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..geometry._plane import LaserPlane
+from ..geometry._transforms import rot_x, rot_y
+from ._base import AbstractCamera, Ray
+
+
+class ThickLensScheimpflug(AbstractCamera):
+    """Thick lens with a tilted sensor (paper eqs. 5–12).
+
+    Camera frame: origin at the image-side principal point H′, +z along the optical axis
+    towards the object; the object-side principal point is H = (0, 0, e).
+    A pixel p = (u, v) lies on the sensor at `P′ = S + R_s [dx (u − x0), dy (v − y0), 0]`
+    with `S = (0, 0, −z0)` and `R_s = R_y(θ) R_x(φ)` (eqs. 5–8); its conjugate object
+    point follows from Newton's formula (eqs. 9–11),
+    `P = (f x′, f y′, (e + f) z′ + e f) / (z′ + f)`.
+
+    As in the paper (eq. 3), the pixel's ray starts at the origin and passes through
+    the conjugate point P, so `K_f = (B A)[:3]` acts as a 3×3 projection matrix.
+
+    **Fields** (mm, rad, px): `f` focal length, `e` principal-plane separation,
+    `z0` distance from H′ to where the axis meets the sensor, `phi`, `theta` sensor
+    tilt about x and y, `x0`, `y0` pixel where the axis meets the sensor,
+    `dx`, `dy` pixel pitch.
+    """
+
+    f: Float[Array, ""]
+    e: Float[Array, ""]
+    z0: Float[Array, ""]
+    phi: Float[Array, ""]
+    theta: Float[Array, ""]
+    x0: Float[Array, ""]
+    y0: Float[Array, ""]
+    dx: Float[Array, ""]
+    dy: Float[Array, ""]
+
+    def __init__(self, f, e, z0, phi, theta, x0, y0, dx, dy):
+        self.f, self.e, self.z0 = (jnp.asarray(v, dtype=float) for v in (f, e, z0))
+        self.phi, self.theta = (jnp.asarray(v, dtype=float) for v in (phi, theta))
+        self.x0, self.y0 = (jnp.asarray(v, dtype=float) for v in (x0, y0))
+        self.dx, self.dy = (jnp.asarray(v, dtype=float) for v in (dx, dy))
+
+    def __check_init__(self):
+        for name in ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy"):
+            if jnp.shape(getattr(self, name)) != ():
+                raise ValueError(f"ThickLensScheimpflug.{name} must be a scalar")
+
+    # --- the matrices of the paper -------------------------------------------------
+    @property
+    def R_s(self) -> Float[Array, "3 3"]:
+        """Sensor tilt `R_y(θ) R_x(φ)` (about the point where the axis meets the sensor)."""
+        return rot_y(self.theta) @ rot_x(self.phi)
+
+    def sensor_matrix(self) -> Float[Array, "4 3"]:
+        """`A` (eq. 8): homogeneous pixel `[u, v, 1]` → homogeneous sensor point."""
+        z = jnp.zeros_like(self.f)
+        one = jnp.ones_like(self.f)
+        pix_to_mm = jnp.stack(
+            [
+                jnp.stack([self.dx, z, -self.dx * self.x0]),
+                jnp.stack([z, self.dy, -self.dy * self.y0]),
+                jnp.stack([z, z, one]),
+            ]
+        )  # eq. 5: [x_im, y_im, 1]
+        R = self.R_s
+        top = R[:, :2] @ pix_to_mm[:2] + jnp.stack([z, z, -self.z0])[:, None] * pix_to_mm[2]
+        return jnp.concatenate([top, pix_to_mm[2:]], axis=0)
+
+    def newton_matrix(self) -> Float[Array, "4 4"]:
+        """`B` (eq. 11): homogeneous image point → homogeneous conjugate object point."""
+        f, e = self.f, self.e
+        z = jnp.zeros_like(f)
+        return jnp.stack(
+            [
+                jnp.stack([f, z, z, z]),
+                jnp.stack([z, f, z, z]),
+                jnp.stack([z, z, e + f, e * f]),
+                jnp.stack([z, z, jnp.ones_like(f), f]),
+            ]
+        )
+
+    def pixel_to_object_matrix(self) -> Float[Array, "4 3"]:
+        """`B A`: homogeneous pixel → homogeneous conjugate object point."""
+        return self.newton_matrix() @ self.sensor_matrix()
+
+    @property
+    def K_f(self) -> Float[Array, "3 3"]:
+        """The paper's 3×3 imaging matrix `K_f` (eq. 12): `X_c = λ K_f [u, v, 1]`."""
+        return self.pixel_to_object_matrix()[:3]
+
+    # --- points ---------------------------------------------------------------------
+    def sensor_point(self, uv: Float[Array, "2"]) -> Float[Array, "3"]:
+        """The sensor point P′ of a pixel, camera frame (mm)."""
+        return (self.sensor_matrix() @ _homogeneous(uv))[:3]
+
+    def conjugate(self, P_image: Float[Array, "3"]) -> Float[Array, "3"]:
+        """Object point conjugate to an image-space point (Newton's formula)."""
+        Ph = self.newton_matrix() @ jnp.append(P_image, jnp.ones((), P_image.dtype))
+        return Ph[:3] / Ph[3]
+
+    def project_one(self, X):
+        pix = jnp.linalg.solve(self.K_f, X)  # X = λ K_f p̃ with λ = pix[2]
+        uv = pix[:2] / pix[2]
+        w = self.pixel_to_object_matrix()[3] @ _homogeneous(uv)  # z′ + f of that pixel
+        # X lies on the ray from the origin through P = K_f p̃ / w when λ w > 0.
+        valid = (pix[2] * w > 0) & jnp.all(jnp.isfinite(uv))
+        return uv, valid
+
+    def backproject_one(self, uv):
+        P = self.object_point(uv)
+        return Ray(jnp.zeros_like(P), P / jnp.linalg.norm(P))
+
+    def object_point(self, uv: Float[Array, "2"]) -> Float[Array, "3"]:
+        """The point on the plane of sharp focus conjugate to a pixel (mm)."""
+        Ph = self.pixel_to_object_matrix() @ _homogeneous(uv)
+        return Ph[:3] / Ph[3]
+
+    # --- Scheimpflug helpers --------------------------------------------------------
+    def focus_plane(self) -> LaserPlane:
+        """The plane of sharp focus: the conjugate of the sensor plane."""
+        p = [
+            self.object_point(jnp.stack([self.x0 + a, self.y0 + b]))
+            for a, b in ((0.0, 0.0), (100.0, 0.0), (0.0, 100.0))
+        ]
+        return LaserPlane.from_points(*p)
+
+    def scheimpflug_line(self) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """The hinge of the Scheimpflug condition, as `(point, unit direction)`.
+
+        It is where the plane of sharp focus meets the object-side principal plane
+        `z = e`; the sensor plane meets the image-side principal plane `z = 0` in the
+        line with the same x, y (principal planes image each other at unit
+        magnification). Undefined (infinite) for an untilted sensor.
+        """
+        n = self.R_s[:, 2]  # sensor normal; sensor plane: n · (P′ − S) = 0
+        # image side, z = 0: n_x x + n_y y = n · S = −n_z z0
+        d = jnp.stack([-n[1], n[0], jnp.zeros_like(n[0])])
+        d = d / jnp.linalg.norm(d)
+        k = -n[2] * self.z0 / (n[0] ** 2 + n[1] ** 2)
+        point = jnp.stack([k * n[0], k * n[1], self.e])
+        return point, d
+
+    def magnification(self, uv: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        """Lateral magnification image/object `x′/x = (z′ + f)/f` at pixels.
+
+        Negative: the image is inverted. The paper's ×1.5 preset gives about −1.57.
+        """
+        A = self.sensor_matrix()
+        z_img = jnp.asarray(uv) @ A[2, :2] + A[2, 2]
+        return (z_img + self.f) / self.f
+
+
+def _homogeneous(uv):
+    return jnp.append(uv, jnp.ones((), uv.dtype))

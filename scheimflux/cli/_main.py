@@ -1,0 +1,78 @@
+"""Dispatcher for the `scheimflux` command.
+
+Each subcommand lives in its own module with two functions:
+`register(subparsers)` adds its parser and sets `func=run`, and `run(args) -> int`.
+Errors that a user can fix are raised as `CLIError` (or `ValueError`/`FileNotFoundError`
+from the readers) and printed as one line, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+# Subcommand modules, in the order `--help` lists them.
+_SUBCOMMANDS = (
+    "_demo",
+    "_lens",
+    "_simulate",
+    "_detect",
+    "_extract",
+    "_calibrate",
+    "_reconstruct",
+)
+
+
+class CLIError(Exception):
+    """An error the user can fix; printed without a traceback."""
+
+
+def _enable_compilation_cache() -> None:
+    import jax
+
+    cache = os.environ.get(
+        "SCHEIMFLUX_CACHE_DIR",
+        os.path.join(os.path.expanduser("~"), ".cache", "scheimflux", "jax"),
+    )
+    try:
+        os.makedirs(cache, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    except (OSError, AttributeError):  # read-only home or old JAX: run uncached
+        pass
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="scheimflux",
+        description="Laser line-structured-light 3D measurement with Scheimpflug cameras.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _SUBCOMMANDS:
+        try:
+            module = importlib.import_module(f"scheimflux.cli.{name}")
+        except ModuleNotFoundError as err:
+            if err.name == f"scheimflux.cli.{name}":
+                continue  # subcommand not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 2
+    _enable_compilation_cache()
+    try:
+        return int(args.func(args) or 0)
+    except (CLIError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        print(f"scheimflux {args.command}: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
