@@ -1,0 +1,240 @@
+"""The observations file, `"format": "scheimflux.observations/1"` (JSON).
+
+```
+{"format": "scheimflux.observations/1",
+ "sensor": {"width": 1600, "height": 1200, "pixel_pitch_mm": [0.0044, 0.0044]},
+ "nominal": {"focal_length_mm": 97, "magnification": 1.5, "tilt_deg": [0, 13]},  # optional
+ "board_points_mm": [[x, y, z], ...],
+ "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...]}, ...],
+ "stage": {"delta_omega_deg": 10, "gauge_radius_mm": 17.5,                        # optional
+           "frames": [[[u, v], ...], ...]}}
+```
+`corners_px` follows the order of `board_points_mm`; null marks a corner not detected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from ._files import load_json, write_json
+
+FORMAT = "scheimflux.observations/1"
+
+
+@dataclasses.dataclass(frozen=True)
+class Nominal:
+    """Nominal device values a user knows before calibration (all optional)."""
+
+    focal_length_mm: float | None = None
+    magnification: float | None = None
+    tilt_deg: tuple[float, float] | None = None  # (phi, theta)
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    """One board pose: corner pixels (NaN rows where not detected) and stripe pixels."""
+
+    corners_px: np.ndarray  # (M, 2) float64
+    stripe_px: np.ndarray  # (K, 2) float64
+
+    @property
+    def corner_mask(self) -> np.ndarray:
+        return np.all(np.isfinite(self.corners_px), axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class StageScan:
+    """A gauge of known radius scanned on the rotary table."""
+
+    delta_omega_deg: float
+    gauge_radius_mm: float
+    frames: list[np.ndarray]  # each (K_i, 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class Observations:
+    """Everything calibration needs, as read from or written to an observations file."""
+
+    width: int
+    height: int
+    pixel_pitch_mm: tuple[float, float]
+    board_points_mm: np.ndarray  # (M, 3)
+    views: list[View]
+    nominal: Nominal | None = None
+    stage: StageScan | None = None
+
+    def corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """All views' corners stacked, `(V, M, 2)`, and the detection mask `(V, M)`."""
+        uv = np.stack([v.corners_px for v in self.views])
+        return uv, np.all(np.isfinite(uv), axis=-1)
+
+
+class ObservationsError(ValueError):
+    """A malformed observations file; the message names the problem."""
+
+
+def _points(value, where: str, dim: int, *, allow_null: bool = False) -> np.ndarray:
+    if not isinstance(value, list):
+        raise ObservationsError(f"{where} must be a list of [{'u, v' if dim == 2 else 'x, y, z'}]")
+    rows = []
+    for i, p in enumerate(value):
+        if p is None and allow_null:
+            rows.append([math.nan] * dim)
+            continue
+        if (
+            not isinstance(p, list)
+            or len(p) != dim
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
+        ):
+            raise ObservationsError(f"{where}[{i}] must be {dim} numbers, got {p!r}")
+        if not all(math.isfinite(c) for c in p):
+            raise ObservationsError(f"{where}[{i}] is not finite: {p!r}")
+        rows.append([float(c) for c in p])
+    return np.asarray(rows, dtype=np.float64).reshape(len(rows), dim)
+
+
+def _require(d: dict, key: str, where: str):
+    if not isinstance(d, dict):
+        raise ObservationsError(f"{where} must be an object")
+    if key not in d:
+        raise ObservationsError(f"missing key {where}.{key}" if where else f"missing key {key!r}")
+    return d[key]
+
+
+def _number(value, where: str, *, positive: bool = False) -> float:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+        raise ObservationsError(f"{where} must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise ObservationsError(f"{where} must be positive, got {value!r}")
+    return float(value)
+
+
+def parse_observations(doc) -> Observations:
+    """Validate a decoded observations document; raises `ObservationsError`."""
+    if not isinstance(doc, dict):
+        raise ObservationsError("observations must be a JSON object")
+    fmt = doc.get("format")
+    if fmt != FORMAT:
+        raise ObservationsError(f"format must be {FORMAT!r}, got {fmt!r}")
+    sensor = _require(doc, "sensor", "")
+    width = _number(_require(sensor, "width", "sensor"), "sensor.width", positive=True)
+    height = _number(_require(sensor, "height", "sensor"), "sensor.height", positive=True)
+    pitch = _require(sensor, "pixel_pitch_mm", "sensor")
+    if not isinstance(pitch, list) or len(pitch) != 2:
+        raise ObservationsError("sensor.pixel_pitch_mm must be [dx, dy]")
+    pitch = tuple(_number(p, "sensor.pixel_pitch_mm", positive=True) for p in pitch)
+
+    nominal = None
+    if doc.get("nominal") is not None:
+        nd = doc["nominal"]
+        if not isinstance(nd, dict):
+            raise ObservationsError("nominal must be an object")
+        tilt = nd.get("tilt_deg")
+        if tilt is not None:
+            if not isinstance(tilt, list) or len(tilt) != 2:
+                raise ObservationsError("nominal.tilt_deg must be [phi, theta]")
+            tilt = tuple(_number(t, "nominal.tilt_deg") for t in tilt)
+        f = nd.get("focal_length_mm")
+        m = nd.get("magnification")
+        nominal = Nominal(
+            None if f is None else _number(f, "nominal.focal_length_mm", positive=True),
+            None if m is None else _number(m, "nominal.magnification", positive=True),
+            tilt,
+        )
+
+    board = _points(_require(doc, "board_points_mm", ""), "board_points_mm", 3)
+    if len(board) < 4:
+        raise ObservationsError(f"board_points_mm has {len(board)} points; at least 4 needed")
+    views_doc = _require(doc, "views", "")
+    if not isinstance(views_doc, list):
+        raise ObservationsError("views must be a list")
+    views = []
+    for i, vd in enumerate(views_doc):
+        corners = _points(
+            _require(vd, "corners_px", f"views[{i}]"), f"views[{i}].corners_px", 2, allow_null=True
+        )
+        if len(corners) != len(board):
+            raise ObservationsError(
+                f"views[{i}].corners_px has {len(corners)} entries but board_points_mm has "
+                f"{len(board)} (use null for corners that were not detected)"
+            )
+        stripe = _points(vd.get("stripe_px", []), f"views[{i}].stripe_px", 2)
+        views.append(View(corners, stripe))
+
+    stage = None
+    if doc.get("stage") is not None:
+        sd = doc["stage"]
+        dw = _number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg")
+        r = _number(
+            _require(sd, "gauge_radius_mm", "stage"), "stage.gauge_radius_mm", positive=True
+        )
+        frames_doc = _require(sd, "frames", "stage")
+        if not isinstance(frames_doc, list) or not frames_doc:
+            raise ObservationsError("stage.frames must be a non-empty list of frames")
+        frames = [_points(f, f"stage.frames[{i}]", 2) for i, f in enumerate(frames_doc)]
+        stage = StageScan(dw, r, frames)
+
+    return Observations(int(width), int(height), pitch, board, views, nominal, stage)
+
+
+def read_observations(path: str | os.PathLike) -> Observations:
+    """Read and validate an observations file; errors name the file and the problem."""
+    doc = load_json(path, "observations")
+    try:
+        return parse_observations(doc)
+    except ObservationsError as err:
+        raise ObservationsError(f"{os.fspath(path)}: {err}") from None
+
+
+def _rows(a: np.ndarray) -> list:
+    return [None if not np.all(np.isfinite(r)) else [float(c) for c in r] for r in a]
+
+
+def observations_to_dict(obs: Observations) -> dict:
+    doc = {
+        "format": FORMAT,
+        "sensor": {
+            "width": int(obs.width),
+            "height": int(obs.height),
+            "pixel_pitch_mm": [float(p) for p in obs.pixel_pitch_mm],
+        },
+    }
+    if obs.nominal is not None:
+        n = obs.nominal
+        doc["nominal"] = {
+            k: v
+            for k, v in (
+                ("focal_length_mm", n.focal_length_mm),
+                ("magnification", n.magnification),
+                ("tilt_deg", None if n.tilt_deg is None else list(n.tilt_deg)),
+            )
+            if v is not None
+        }
+    doc["board_points_mm"] = _rows(np.asarray(obs.board_points_mm))
+    doc["views"] = [
+        {
+            "corners_px": _rows(np.asarray(v.corners_px)),
+            "stripe_px": [r for r in _rows(np.asarray(v.stripe_px)) if r is not None],
+        }
+        for v in obs.views
+    ]
+    if obs.stage is not None:
+        doc["stage"] = {
+            "delta_omega_deg": float(obs.stage.delta_omega_deg),
+            "gauge_radius_mm": float(obs.stage.gauge_radius_mm),
+            "frames": [
+                [r for r in _rows(np.asarray(f).reshape(-1, 2)) if r is not None]
+                for f in obs.stage.frames
+            ],
+        }
+    return doc
+
+
+def write_observations(path, obs: Observations, *, overwrite: bool = False) -> None:
+    """Write an observations file atomically (never clobbers unless `overwrite`)."""
+    parse_observations(observations_to_dict(obs))  # refuse to write what we couldn't read
+    write_json(path, observations_to_dict(obs), overwrite=overwrite)

@@ -1,0 +1,81 @@
+"""The observations file: round trip, validation messages, no clobbering."""
+
+import json
+
+import numpy as np
+import pytest
+
+from scheimflux.io import (
+    Nominal,
+    Observations,
+    StageScan,
+    View,
+    read_observations,
+    write_observations,
+)
+
+
+def _obs():
+    board = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]])
+    corners = np.array([[10.0, 20.0], [np.nan, np.nan], [12.5, 30.25], [40.0, 41.0]])
+    return Observations(
+        1600,
+        1200,
+        (0.0044, 0.0044),
+        board,
+        [View(corners, np.array([[1.0, 2.0], [3.0, 4.0]]))],
+        Nominal(97.0, 1.5, (0.0, 13.0)),
+        StageScan(10.0, 17.5, [np.array([[5.0, 6.0]]), np.zeros((0, 2))]),
+    )
+
+
+def test_round_trip(tmp_path):
+    path = tmp_path / "obs.json"
+    write_observations(path, _obs())
+    back = read_observations(path)
+    np.testing.assert_array_equal(back.views[0].corners_px, _obs().views[0].corners_px)
+    assert back.views[0].corner_mask.tolist() == [True, False, True, True]
+    assert back.nominal == _obs().nominal and back.stage.frames[1].shape == (0, 2)
+    assert json.loads(path.read_text())["views"][0]["corners_px"][1] is None
+
+
+def test_no_clobber(tmp_path):
+    path = tmp_path / "obs.json"
+    path.write_text("precious")
+    with pytest.raises(FileExistsError):
+        write_observations(path, _obs())
+    assert path.read_text() == "precious"
+    write_observations(path, _obs(), overwrite=True)
+    assert read_observations(path).width == 1600
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda d: d.pop("format"), "format must be"),
+        (lambda d: d.pop("sensor"), "missing key 'sensor'"),
+        (lambda d: d["sensor"].pop("pixel_pitch_mm"), "sensor.pixel_pitch_mm"),
+        (lambda d: d["views"][0]["corners_px"].pop(), "has 3 entries but board_points_mm has 4"),
+        (lambda d: d["views"][0]["corners_px"].__setitem__(0, [1, "a"]), r"corners_px\[0\]"),
+        (lambda d: d["board_points_mm"].__setitem__(0, [1, 2]), r"board_points_mm\[0\]"),
+        (lambda d: d["stage"].pop("gauge_radius_mm"), "stage.gauge_radius_mm"),
+        (lambda d: d["sensor"].__setitem__("width", -3), "sensor.width must be positive"),
+    ],
+)
+def test_validation_messages(tmp_path, mutate, message):
+    path = tmp_path / "obs.json"
+    write_observations(path, _obs())
+    doc = json.loads(path.read_text())
+    mutate(doc)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=message):
+        read_observations(path)
+
+
+def test_not_json(tmp_path):
+    path = tmp_path / "obs.json"
+    path.write_text("{oops")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        read_observations(path)
+    with pytest.raises(FileNotFoundError, match="observations file not found"):
+        read_observations(tmp_path / "missing.json")
