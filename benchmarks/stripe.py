@@ -1,0 +1,137 @@
+"""Laser-stripe extraction: accuracy against exact synthetic centres, and speed.
+
+Accuracy: bias and RMS (px) of the centre across the stripe for band Steger, full-frame
+Steger and the grey centroid, for stripe widths 3, 5, 8 px (FWHM) and dark/low/bright
+ambient light (tilted, gently curved stripe, SNR 20, 8-bit).
+Speed: frames/s on 1600 x 1200 8-bit frames for band Steger (one thread; and the
+multi-frame API with a thread pool), and for a full-frame OpenCV Steger baseline
+(Gaussian derivative filters over the whole frame, per-column maximum) run here.
+
+    python benchmarks/stripe.py [--frames N] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import cv2
+import numpy as np
+
+from scheimflux.simulate._render_stripe import render_stripe
+from scheimflux.stripe import extract_stripe, extract_stripes, steger_sigma
+from scheimflux.stripe._kernels import gaussian_kernels
+
+SHAPE = (1200, 1600)
+
+
+def centre(u):
+    return 500.3 + 0.15 * u + 30.0 * np.sin(u / 300.0)
+
+
+def opencv_full_frame_steger(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Baseline: cv2 Gaussian derivatives over the whole frame, Hessian eigenvalue, per
+    column the strongest response and Steger's Taylor step there."""
+    k0, k1, k2 = gaussian_kernels(sigma)
+    f = img.astype(np.float32)
+    ry = cv2.sepFilter2D(f, cv2.CV_32F, k0, k1)
+    rxx = cv2.sepFilter2D(f, cv2.CV_32F, k2, k0)
+    rxy = cv2.sepFilter2D(f, cv2.CV_32F, k1, k1)
+    ryy = cv2.sepFilter2D(f, cv2.CV_32F, k0, k2)
+    lam = 0.5 * (rxx + ryy) - np.sqrt((0.5 * (rxx - ryy)) ** 2 + rxy**2)
+    best = cv2.reduceArgMax(-lam, 0).ravel()
+    cols = np.arange(img.shape[1])
+    return best + ry[best, cols] / np.maximum(-ryy[best, cols], 1e-6)
+
+
+def accuracy_table(quick: bool) -> None:
+    shape = (600, 800) if quick else SHAPE
+    print("accuracy (px, across the stripe; SNR 20, 8-bit, tilted curved stripe)")
+    print(
+        f"{'width':>5} {'ambient':>8} | {'band bias':>9} {'rms':>6} | "
+        f"{'full bias':>9} {'rms':>6} | {'centroid bias':>13} {'rms':>6}"
+    )
+    for width in (3, 5, 8):
+        for ambient in ("dark", "low", "bright"):
+            c = (lambda u: centre(u) * shape[0] / SHAPE[0]) if quick else centre
+            img, truth = render_stripe(
+                shape, c, width_px=width, peak=0.4, ambient=ambient, noise_sigma=0.02, seed=width
+            )
+            row = []
+            for kw in ({}, {"band_px": None}, {"method": "centroid"}):
+                res = extract_stripe(img, width_px=width, **kw)
+                ok = res.valid & truth.valid
+                err = res.uv[ok, 1] - truth.uv[ok, 1]
+                row.append((err.mean(), np.sqrt(np.mean(err**2))))
+            print(
+                f"{width:>5} {ambient:>8} | {row[0][0]:>+9.4f} {row[0][1]:>6.4f} | "
+                f"{row[1][0]:>+9.4f} {row[1][1]:>6.4f} | {row[2][0]:>+13.4f} {row[2][1]:>6.4f}"
+            )
+
+
+def rate(fn, frames) -> tuple[float, float]:
+    """Frames per second of wall-clock time and of this process's CPU time (the latter is
+    immune to other processes sharing the machine; for a thread pool it is per core)."""
+    fn(frames[:2])
+    t0, c0 = time.perf_counter(), time.process_time()
+    fn(frames)
+    return len(frames) / (time.perf_counter() - t0), len(frames) / (time.process_time() - c0)
+
+
+def speed_table(n_frames: int) -> None:
+    frames = [
+        render_stripe(
+            SHAPE,
+            lambda u, i=i: centre(u) + 7.3 * i,
+            width_px=5,
+            peak=0.5,
+            ambient="low",
+            noise_sigma=0.01,
+            seed=i,
+        )[0]
+        for i in range(min(n_frames, 8))
+    ]
+    frames = (frames * (n_frames // len(frames) + 1))[:n_frames]
+    sigma = steger_sigma(5.0)
+    previous = cv2.getNumThreads()
+    results = {}
+    cv2.setNumThreads(1)
+    results["band Steger, 1 thread"] = rate(
+        lambda fs: [extract_stripe(f, width_px=5) for f in fs], frames
+    )
+    results["centroid, 1 thread"] = rate(
+        lambda fs: [extract_stripe(f, width_px=5, method="centroid") for f in fs], frames
+    )
+    cv2.setNumThreads(previous)
+    results[f"band Steger, extract_stripes ({os.cpu_count()} threads)"] = rate(
+        lambda fs: extract_stripes(fs, width_px=5), frames
+    )
+    few = frames[: max(4, n_frames // 20)]
+    results[f"full-frame OpenCV Steger baseline ({cv2.getNumThreads()} cv2 threads)"] = rate(
+        lambda fs: [opencv_full_frame_steger(f, sigma) for f in fs], few
+    )
+    results["full-frame Steger, extract_stripe(band_px=None)"] = rate(
+        lambda fs: [extract_stripe(f, width_px=5, band_px=None) for f in fs], few
+    )
+    base = results[f"full-frame OpenCV Steger baseline ({cv2.getNumThreads()} cv2 threads)"]
+    print(f"\nspeed, 1600 x 1200 8-bit, width 5 px ({n_frames} frames; baselines on {len(few)})")
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    print(f"{'method':<58} {'frames/s':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
+    for name, (fps, cps) in results.items():
+        print(f"{name:<58} {fps:>9.1f} {fps / base[0]:>6.1f}x {cps:>10.1f} {cps / base[1]:>6.1f}x")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=200, help="frames for the speed test")
+    parser.add_argument("--quick", action="store_true", help="smaller accuracy images, 40 frames")
+    args = parser.parse_args()
+    accuracy_table(args.quick)
+    speed_table(40 if args.quick else args.frames)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,8 @@
+"""Sub-pixel laser-stripe centre extraction (Steger's Hessian method, grey centroid).
+
+NumPy/OpenCV only: never called inside traced JAX code.
+"""
+
+from ._extract import extract_stripe as extract_stripe, extract_stripes as extract_stripes
+from ._kernels import steger_sigma as steger_sigma
+from ._result import StripeResult as StripeResult

@@ -1,0 +1,141 @@
+"""Coarse stripe localisation: a 4x-downsampled ridge search, one peak per scan line.
+
+Everything here works in the *scan frame*: rows are the scan coordinate (v for a vertical
+scan) and columns are the scan lines (u for a vertical scan). The coarse track only
+positions the band in which the sub-pixel extractors look; it is never reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+
+#: Downsampling factor of the coarse image along both axes.
+FACTOR = 4
+# Scan lines of the coarse image over which the median track is taken (odd).
+_TRACK_WINDOW = 15
+
+
+def downsample(image: np.ndarray) -> np.ndarray:
+    """Average 4 x 4 blocks (two fast 2 x 2 area reductions), float32, shape (H//4, W//4)."""
+    h, w = (image.shape[0] // FACTOR) * FACTOR, (image.shape[1] // FACTOR) * FACTOR
+    img = image[:h, :w]
+    if img.dtype == np.float64:
+        img = img.astype(np.float32)
+    half = cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    quarter = cv2.resize(half, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
+    return quarter.astype(np.float32, copy=False)
+
+
+def dominant_scan(small: np.ndarray) -> str:
+    """`"vertical-scan"` if the image varies more along v than along u (a mostly
+    horizontal stripe, best scanned column by column), else `"horizontal-scan"`."""
+    gu = small[:, 1:] - small[:, :-1]
+    gv = small[1:, :] - small[:-1, :]
+    energy_u = float(np.einsum("ij,ij->", gu, gu))
+    energy_v = float(np.einsum("ij,ij->", gv, gv))
+    return "vertical-scan" if energy_v >= energy_u else "horizontal-scan"
+
+
+@dataclasses.dataclass(frozen=True)
+class CoarseTrack:
+    """Coarse stripe position per full-resolution scan line (scan frame).
+
+    - `centre`: (W,) float64, the coarse scan coordinate of the stripe (interpolated across
+      scan lines without a detection).
+    - `support`: (W,) bool, a coarse detection at or next to this scan line.
+    - `tolerance`: how far (px) a centre may lie from `centre` and still count as the stripe.
+    - `found`: False when no scan line had a detection at all.
+    """
+
+    centre: np.ndarray
+    support: np.ndarray
+    tolerance: float
+    found: bool
+
+
+def _windowed_median(values: np.ndarray, ok: np.ndarray, window: int) -> np.ndarray:
+    """Median of the `ok` entries in a centred sliding window; NaN where there are none."""
+    half = window // 2
+    padded = np.pad(np.where(ok, values, np.inf), half, constant_values=np.inf)
+    windows = np.sort(np.lib.stride_tricks.sliding_window_view(padded, window), axis=1)
+    count = np.count_nonzero(np.isfinite(windows), axis=1)
+    mid = np.take_along_axis(windows, np.maximum((count - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    return np.where(count > 0, mid, np.nan)
+
+
+def coarse_track(
+    small: np.ndarray,
+    n_rows: int,
+    n_cols: int,
+    *,
+    width_px: float,
+    integer_input: bool,
+    pixel_noise: float,
+) -> CoarseTrack:
+    """Locate the stripe in the downsampled scan-frame image `small`.
+
+    **Arguments:**
+    - `small`: the 4x downsampled image in the scan frame (rows = scan coordinate).
+    - `n_rows`, `n_cols`: shape of the full-resolution scan-frame image.
+    - `width_px`: expected stripe FWHM (px).
+    - `integer_input`: whether the image held integer grey levels (rounding noise).
+    - `pixel_noise`: the image's noise standard deviation (grey levels).
+    """
+    hs, ws = small.shape
+    d = max(1, int(round(width_px / FACTOR)))
+    kernel = np.zeros((2 * d + 1, 1), np.float32)
+    kernel[0, 0] = kernel[-1, 0] = -0.5
+    kernel[d, 0] = 1.0
+    ridge = cv2.filter2D(small, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE)
+
+    idx = cv2.reduceArgMax(ridge, 0).reshape(-1).astype(np.intp)
+    cols = np.arange(ws)
+    resp = ridge[idx, cols]
+
+    # Noise of the ridge response on 4 x 4 block means: sqrt(1.5) / 4 = 0.306 times the
+    # pixel noise, plus the rounding of integer block means.
+    ridge_noise = math.hypot(0.306 * pixel_noise, 0.35 if integer_input else 0.0)
+    threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.ptp(small)), 1e-30))
+    ok = resp > threshold
+
+    tolerance = max(3.0 * width_px, 12.0)
+    if not ok.any():
+        return CoarseTrack(np.zeros(n_cols), np.zeros(n_cols, bool), tolerance, False)
+
+    # Sub-coarse-pixel peak (parabola through the ridge response).
+    up = ridge[np.maximum(idx - 1, 0), cols]
+    down = ridge[np.minimum(idx + 1, hs - 1), cols]
+    denom = up - 2.0 * resp + down
+    frac = np.where(denom < 0, 0.5 * (up - down) / np.where(denom < 0, denom, -1.0), 0.0)
+    pos = FACTOR * (idx + np.clip(frac, -0.5, 0.5)) + (FACTOR - 1) / 2.0
+
+    # Consistency with the neighbours: re-search outliers near the median track.
+    track = _windowed_median(pos, ok, _TRACK_WINDOW)
+    outlier = ok & (np.abs(pos - track) > tolerance)
+    if outlier.any():
+        j = np.flatnonzero(outlier)
+        rows = FACTOR * np.arange(hs)[:, None] + (FACTOR - 1) / 2.0
+        near = np.abs(rows - track[j][None, :]) <= tolerance
+        sub = np.where(near, ridge[:, j], -np.inf)
+        best = np.argmax(sub, axis=0)
+        best_resp = sub[best, np.arange(j.size)]
+        good = best_resp > threshold
+        pos[j] = np.where(good, FACTOR * best + (FACTOR - 1) / 2.0, pos[j])
+        ok[j] = good
+    if not ok.any():
+        return CoarseTrack(np.zeros(n_cols), np.zeros(n_cols, bool), tolerance, False)
+
+    centres = FACTOR * cols + (FACTOR - 1) / 2.0
+    full = np.arange(n_cols, dtype=np.float64)
+    centre = np.interp(full, centres[ok], pos[ok])
+    centre = np.clip(centre, 0.0, n_rows - 1.0)
+    # Support: a detection in the coarse scan line or one of its neighbours.
+    okd = ok.copy()
+    okd[1:] |= ok[:-1]
+    okd[:-1] |= ok[1:]
+    support = okd[np.minimum(np.arange(n_cols) // FACTOR, ws - 1)]
+    return CoarseTrack(centre, support, tolerance, True)

@@ -1,0 +1,59 @@
+"""`StripeResult`: the sub-pixel centres found in one image."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class StripeResult:
+    """Laser-stripe centres of one image, one entry per scan line.
+
+    With `orientation="vertical-scan"` there is one entry per image column `u` (the stripe
+    runs mostly left–right); with `"horizontal-scan"` one entry per row `v`. Pixel (0, 0) is
+    the centre of the top-left pixel; u grows to the right, v downwards.
+
+    **Fields:**
+    - `uv`: sub-pixel centres `(u, v)`, shape (N, 2), float64; NaN where `valid` is False.
+      The scan coordinate is exact (the column `u` for a vertical scan), the other one is
+      where the stripe's centre line crosses that scan line.
+    - `strength`: line strength, shape (N,): `-sigma² · ∂²I/∂n²` (scale-normalised second
+      derivative across the stripe, in the image's grey levels) for Steger; the
+      background-subtracted peak grey level for the centroid method; 0 where invalid.
+    - `width`: estimated full width at half maximum across the stripe in pixels, shape (N,);
+      NaN where invalid or not measurable.
+    - `valid`: shape (N,), bool: a centre was found, strong enough and consistent with its
+      neighbours. Gaps and rejected reflections are False.
+    - `saturated`: shape (N,), bool: the stripe's peak reached the saturation level there
+      (the centre is still measured, from the plateau).
+    - `orientation`: `"vertical-scan"` or `"horizontal-scan"`, the scan actually used.
+    - `method`: `"steger"` or `"centroid"`.
+    """
+
+    uv: np.ndarray
+    strength: np.ndarray
+    width: np.ndarray
+    valid: np.ndarray
+    saturated: np.ndarray
+    orientation: str = "vertical-scan"
+    method: str = "steger"
+
+    def __post_init__(self):
+        n = self.uv.shape[0]
+        if self.uv.shape != (n, 2):
+            raise ValueError(f"StripeResult.uv must have shape (N, 2), got {self.uv.shape}")
+        for name in ("strength", "width", "valid", "saturated"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(
+                    f"StripeResult.{name} must have shape ({n},), got {getattr(self, name).shape}"
+                )
+
+    @property
+    def valid_uv(self) -> np.ndarray:
+        """The valid centres only, shape (M, 2), float64."""
+        return self.uv[self.valid]
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]

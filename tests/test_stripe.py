@@ -1,0 +1,304 @@
+"""Sub-pixel laser-stripe extraction against synthetic stripes with exact centres."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from scheimflux.simulate._render_stripe import render_stripe
+from scheimflux.stripe import StripeResult, extract_stripe, extract_stripes, steger_sigma
+
+SHAPE = (300, 800)
+CENTRES = {
+    "straight": lambda u: 150.3 + 0.0 * u,
+    "tilted": lambda u: 100.2 + 0.12 * u,
+    "curved": lambda u: 150.0 + 40.0 * np.sin(u / 150.0),
+}
+
+
+def errors(result, truth, *, margin=0):
+    """Errors across the stripe at scan lines valid in both (optionally `margin` scan
+    lines away from any truth-invalid one, e.g. gap edges)."""
+    axis = 1 if truth.orientation == "horizontal" else 0
+    ok = truth.valid.copy()
+    if margin:
+        bad = np.flatnonzero(~truth.valid)
+        for b in bad:
+            ok[max(b - margin, 0) : b + margin + 1] = False
+    both = ok & result.valid
+    return result.uv[both, axis] - truth.uv[both, axis], both, ok
+
+
+@pytest.mark.parametrize("ambient", ["dark", "low", "bright"])
+@pytest.mark.parametrize("width", [3, 5, 8])
+@pytest.mark.parametrize("shape", ["straight", "tilted", "curved"])
+def test_steger_accuracy_snr20(shape, width, ambient):
+    # SNR = peak / noise = 0.4 / 0.02 = 20.
+    img, truth = render_stripe(
+        SHAPE, CENTRES[shape], width_px=width, peak=0.4, ambient=ambient, noise_sigma=0.02, seed=3
+    )
+    result = extract_stripe(img, width_px=width)
+    err, both, _ = errors(result, truth)
+    assert both.sum() == truth.valid.sum()  # every column found
+    assert abs(err.mean()) <= 0.02
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+    assert np.nanmedian(result.width) == pytest.approx(width, rel=0.1)
+    assert result.orientation == "vertical-scan"
+    # The scan coordinate is the exact column.
+    np.testing.assert_array_equal(result.uv[result.valid, 0], np.flatnonzero(result.valid))
+
+
+@pytest.mark.parametrize("width", [3, 8])
+def test_steger_noise_free_is_nearly_exact(width):
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=width, peak=0.6, noise_sigma=0.0, bit_depth=16
+    )
+    result = extract_stripe(img, width_px=width)
+    err = result.uv[:, 1] - truth.uv[:, 1]
+    # Within the filter's reach of the image's left/right border the (replicated) border
+    # bends a tilted stripe slightly.
+    assert np.max(np.abs(err)) < 0.15
+    assert np.max(np.abs(err[12:-12])) < 0.005
+
+
+def test_band_equals_full_frame():
+    img, truth = render_stripe(SHAPE, CENTRES["curved"], width_px=5, peak=0.5, ambient="low")
+    band = extract_stripe(img, width_px=5)
+    full = extract_stripe(img, width_px=5, band_px=None)
+    np.testing.assert_array_equal(band.valid, full.valid)
+    np.testing.assert_allclose(band.uv, full.uv, atol=1e-6, equal_nan=True)
+    wide = extract_stripe(img, width_px=5, band_px=30)
+    np.testing.assert_allclose(band.uv, wide.uv, atol=2e-3, equal_nan=True)
+
+
+@pytest.mark.parametrize("ambient", ["dark", "bright"])
+def test_centroid_reasonable(ambient):
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=5, peak=0.4, ambient=ambient, noise_sigma=0.02, seed=4
+    )
+    result = extract_stripe(img, method="centroid", width_px=5)
+    err, both, _ = errors(result, truth)
+    assert result.method == "centroid"
+    assert both.sum() >= 0.99 * truth.valid.sum()
+    assert abs(err.mean()) <= 0.05
+    assert np.sqrt(np.mean(err**2)) <= 0.1
+
+
+@pytest.mark.parametrize("method", ["steger", "centroid"])
+def test_vertical_stripe_auto_orientation(method):
+    img, truth = render_stripe(
+        (800, 300), lambda v: 120.4 + 0.08 * v, orientation="vertical", width_px=4, noise_sigma=0.01
+    )
+    result = extract_stripe(img, method=method, width_px=4)
+    assert result.orientation == "horizontal-scan"
+    assert len(result) == 800
+    err, both, _ = errors(result, truth)
+    assert both.sum() == truth.valid.sum()
+    assert np.sqrt(np.mean(err**2)) <= (0.05 if method == "steger" else 0.1)
+    np.testing.assert_array_equal(result.uv[result.valid, 1], np.flatnonzero(result.valid))
+
+
+@pytest.mark.parametrize("bit_depth", [8, 12, 16])
+def test_bit_depths(bit_depth):
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=5, bit_depth=bit_depth, noise_sigma=0.01, seed=5
+    )
+    assert img.dtype == (np.uint8 if bit_depth == 8 else np.uint16)
+    assert img.max() <= 2**bit_depth - 1
+    result = extract_stripe(img, width_px=5)
+    err, both, _ = errors(result, truth)
+    assert both.sum() == truth.valid.sum()
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+    # Strength is in the image's grey levels: it scales with the bit depth.
+    assert np.median(result.strength[result.valid]) > 0.05 * 0.6 * (2**bit_depth - 1)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32])
+def test_float_and_other_dtypes(dtype):
+    img, truth = render_stripe(SHAPE, CENTRES["curved"], width_px=5, saturate=False, seed=6)
+    img = img.astype(dtype) if dtype is not np.int32 else np.rint(img).astype(np.int32)
+    err, both, _ = errors(extract_stripe(img, width_px=5), truth)
+    assert both.sum() == truth.valid.sum()
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+
+
+def test_saturated_plateau():
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=5, peak=2.5, noise_sigma=0.01, seed=7
+    )
+    assert truth.saturated.all()
+    assert np.count_nonzero(img == 255) > 3 * SHAPE[1]  # plateaus several pixels tall
+    result = extract_stripe(img, width_px=5)
+    err, both, _ = errors(result, truth)
+    assert both.sum() == truth.valid.sum()
+    assert result.saturated[result.valid].mean() > 0.9
+    assert abs(err.mean()) <= 0.02
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+
+
+def test_explicit_saturation_level_12_bit():
+    img, truth = render_stripe(SHAPE, CENTRES["straight"], width_px=6, peak=2.0, bit_depth=12)
+    assert img.max() == 4095
+    result = extract_stripe(img, width_px=6, saturation=4095)
+    err, _, _ = errors(result, truth)
+    assert result.saturated[result.valid].all()
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+
+
+def test_speckle():
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=6, peak=0.5, speckle=0.2, ambient="low", seed=8
+    )
+    err, both, _ = errors(extract_stripe(img, width_px=6), truth)
+    assert both.sum() >= 0.99 * truth.valid.sum()
+    assert abs(err.mean()) <= 0.02
+    assert np.sqrt(np.mean(err**2)) <= 0.2
+
+
+@pytest.mark.parametrize("method", ["steger", "centroid"])
+def test_gaps_are_invalid(method):
+    gaps = [(100, 180), (400, 403), (700, 800)]
+    img, truth = render_stripe(
+        SHAPE, CENTRES["curved"], width_px=5, ambient="low", gaps=gaps, noise_sigma=0.01
+    )
+    result = extract_stripe(img, method=method, width_px=5)
+    for start, stop in gaps:
+        # Only the last few columns next to a lit column may see the stripe's end.
+        inner = slice(start + 3, stop - 3) if stop - start > 6 else slice(start, start)
+        assert not result.valid[inner].any()
+        assert np.isnan(result.uv[inner]).all()
+    err, both, ok = errors(result, truth, margin=4)
+    assert both.sum() == ok.sum()
+    assert np.abs(err).max() < 0.2
+
+
+def test_second_reflection_rejected():
+    img, truth = render_stripe(
+        SHAPE, CENTRES["tilted"], width_px=5, reflection=(60.0, 0.5), noise_sigma=0.01
+    )
+    result = extract_stripe(img, width_px=5)
+    err, both, _ = errors(result, truth)
+    assert both.sum() == truth.valid.sum()
+    assert np.abs(err).max() < 0.2
+
+
+def test_brighter_local_reflection_is_not_followed():
+    # A short specular streak, brighter than the stripe, 50 px below it in 30 columns.
+    img, truth = render_stripe(SHAPE, CENTRES["straight"], width_px=5, peak=0.4)
+    streak, _ = render_stripe(
+        SHAPE,
+        lambda u: 200.0 + 0.0 * u,
+        width_px=5,
+        peak=0.9,
+        ambient=0.0,
+        noise_sigma=0.0,
+        gaps=[(0, 300), (330, 800)],
+    )
+    img = np.clip(img.astype(np.int32) + streak, 0, 255).astype(np.uint8)
+    result = extract_stripe(img, width_px=5)
+    err, both, _ = errors(result, truth)
+    assert both.sum() >= truth.valid.sum() - 2
+    assert np.abs(err).max() < 0.2
+    assert not np.any(np.abs(result.uv[result.valid, 1] - 200.0) < 10)
+
+
+def test_width_measured_when_not_given():
+    img, truth = render_stripe(SHAPE, CENTRES["straight"], width_px=9, noise_sigma=0.01)
+    result = extract_stripe(img)
+    assert np.nanmedian(result.width) == pytest.approx(9, rel=0.15)
+    err, _, _ = errors(result, truth)
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+
+
+def test_no_stripe_gives_no_points():
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal(40, 2, SHAPE), 0, 255).astype(np.uint8)
+    for method in ("steger", "centroid"):
+        result = extract_stripe(img, method=method, width_px=5)
+        assert not result.valid.any()
+        assert result.valid_uv.shape == (0, 2)
+    assert not extract_stripe(np.zeros(SHAPE, np.uint8)).valid.any()
+
+
+def test_multi_frame_matches_single():
+    frames = [
+        render_stripe(SHAPE, CENTRES[k], width_px=5, seed=i)[0] for i, k in enumerate(CENTRES)
+    ]
+    many = extract_stripes(frames, width_px=5, workers=2)
+    assert len(many) == 3
+    for frame, res in zip(frames, many):
+        np.testing.assert_array_equal(res.uv, extract_stripe(frame, width_px=5).uv)
+    assert len(extract_stripes(np.stack(frames), width_px=5, workers=1)) == 3
+    with pytest.raises(ValueError, match="workers"):
+        extract_stripes(frames, workers=0)
+
+
+def test_result_container():
+    img, _ = render_stripe((64, 96), width_px=4)
+    result = extract_stripe(img, width_px=4)
+    assert isinstance(result, StripeResult)
+    assert result.uv.shape == (96, 2) and result.uv.dtype == np.float64
+    assert result.valid_uv.shape == (result.valid.sum(), 2)
+    assert np.isfinite(result.valid_uv).all()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.valid = None
+    with pytest.raises(ValueError, match="shape"):
+        StripeResult(
+            np.zeros((3, 2)), np.zeros(2), np.zeros(3), np.zeros(3, bool), np.zeros(3, bool)
+        )
+    assert steger_sigma(2 * np.sqrt(3.0)) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    "image, message",
+    [
+        (np.zeros(100), "2-D"),
+        (np.zeros((50, 60, 3), np.uint8), "grey"),
+        (np.zeros((0, 0)), "too small"),
+        (np.zeros((50, 4)), "too small"),
+        (np.array([["a", "b"], ["c", "d"]]), "dtype"),
+        (np.zeros((50, 60), bool), "dtype"),
+        (np.full((50, 60), np.nan), "NaN"),
+        ([[1, 2], [3]], "could not be converted"),
+    ],
+)
+def test_bad_images(image, message):
+    with pytest.raises(ValueError, match=message):
+        extract_stripe(image)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"method": "gauss"}, "method"),
+        ({"orientation": "diagonal"}, "orientation"),
+        ({"width_px": -3.0}, "width_px"),
+        ({"band_px": 0}, "band_px"),
+        ({"min_strength": float("nan")}, "min_strength"),
+    ],
+)
+def test_bad_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        extract_stripe(np.zeros((50, 60), np.uint8), **kwargs)
+
+
+def test_renderer_truth_and_validation():
+    img, truth = render_stripe((40, 50), [(0.0, 10.0), (49.0, 30.0)], width_px=4, gaps=[(5, 8)])
+    assert img.shape == (40, 50) and img.dtype == np.uint8
+    np.testing.assert_allclose(truth.uv[:, 1], 10.0 + 20.0 * np.arange(50) / 49.0)
+    assert not truth.valid[5:8].any() and truth.valid[8:].all()
+    assert truth.sigma_px == pytest.approx(4 / 2.3548, rel=1e-4)
+    # Pixel integration: the column sums equal the stripe's integral (peak * sigma sqrt(2 pi)
+    # / cos(slope) in grey levels above the background).
+    flat, t2 = render_stripe(
+        (60, 40), width_px=4, peak=0.5, ambient=0.0, saturate=False, noise_sigma=0.0
+    )
+    np.testing.assert_allclose(
+        flat.sum(axis=0), 0.5 * 255 * t2.sigma_px * np.sqrt(2 * np.pi), rtol=1e-5
+    )
+    with pytest.raises(ValueError, match="bit_depth"):
+        render_stripe((40, 50), bit_depth=10)
+    with pytest.raises(ValueError, match="ambient"):
+        render_stripe((40, 50), ambient="dim")
+    with pytest.raises(ValueError, match="increase"):
+        render_stripe((40, 50), [(5.0, 1.0), (2.0, 3.0)])
