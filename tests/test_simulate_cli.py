@@ -1,0 +1,53 @@
+"""`scheimflux simulate` end to end in a temporary folder (small: 4 views, 3 frames)."""
+
+import json
+
+import numpy as np
+
+from scheimflux.cli._main import main
+from scheimflux.io import read_observations
+from scheimflux.io._stripes import read_stripes
+from scheimflux.simulate._observe import read_truth
+
+_SMALL = ["--views", "4", "--frames", "3", "--no-refine", "--seed", "2"]
+
+
+def test_simulate_cli(tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out), *_SMALL]) == 0
+    text = capsys.readouterr().out
+    assert "theta = 13.307 deg" in text and "4 views" in text and "stripe points" in text
+
+    obs = read_observations(out / "observations.json")
+    assert len(obs.views) == 4 and obs.stage is not None and len(obs.stage.frames) == 3
+    assert obs.nominal.focal_length_mm == 97.0 and obs.nominal.tilt_deg == (3.0, 13.0)
+    truth = read_truth(out / "truth.json")
+    assert len(truth.board_poses) == 4 and len(truth.scan_px) == 3
+    _, mask = obs.corners()
+    np.testing.assert_array_equal(mask, np.isfinite(truth.corners_px).all(axis=-1))
+
+    frames = read_stripes(out / "scan_stripes.json")
+    assert len(frames) == 3
+    for f, g in zip(frames, obs.stage.frames):
+        np.testing.assert_array_equal(f, g)
+    assert "frames" in json.loads((out / "scan_stripes.json").read_text())
+
+    # refuses to clobber without --overwrite, and leaves the files alone
+    before = (out / "truth.json").read_text()
+    assert main(["simulate", "--out", str(out), *_SMALL[:-1], "3"]) == 1
+    err = capsys.readouterr().err
+    assert "exists" in err and "--overwrite" in err and "Traceback" not in err
+    assert (out / "truth.json").read_text() == before
+
+    assert main(["simulate", "--out", str(out), *_SMALL[:-1], "3", "--overwrite"]) == 0
+    assert (out / "truth.json").read_text() != before  # another seed
+
+
+def test_simulate_cli_user_errors(tmp_path, capsys):
+    assert main(["simulate", "--out", str(tmp_path), "--magnification", "5"]) == 1
+    assert "magnification" in capsys.readouterr().err
+    assert main(["simulate", "--out", str(tmp_path), "--board", "11by8"]) == 1
+    assert "COLSxROWS" in capsys.readouterr().err
+    assert main(["simulate", "--out", str(tmp_path), "--lens", "no-such-lens"]) == 1
+    assert "no-such-lens" in capsys.readouterr().err
+    assert not (tmp_path / "observations.json").exists()
