@@ -70,7 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     _enable_compilation_cache()
     try:
         return int(args.func(args) or 0)
-    except (CLIError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+    except (
+        CLIError,
+        ValueError,
+        FileNotFoundError,
+        FileExistsError,
+        IsADirectoryError,
+        PermissionError,
+    ) as err:
         print(f"scheimflux {args.command}: error: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -46,6 +46,6 @@ class RotaryStage(eqx.Module):
         """`R_i`, the rotation about `z_m` by `i · delta_omega`."""
         return rot_z(jnp.asarray(frame_index, dtype=self.delta_omega.dtype) * self.delta_omega)
 
-    def to_measurement(self, X_c: Float[Array, "3"], frame_index) -> Float[Array, "3"]:
+    def to_measurement(self, X_c: Float[ArrayLike, "3"], frame_index) -> Float[Array, "3"]:
         """Map one camera-frame point of frame `frame_index` to the measurement frame."""
-        return self.frame_rotation(frame_index) @ self.T_m_c.apply(X_c)
+        return self.frame_rotation(frame_index) @ self.T_m_c.apply(jnp.asarray(X_c))

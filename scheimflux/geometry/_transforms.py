@@ -59,9 +59,9 @@ class Pose(eqx.Module):
         self.translation = jnp.asarray(translation, dtype=float)
 
     def __check_init__(self):
-        if self.rotvec.shape != (3,) or self.translation.shape != (3,):
+        if self.rotvec.shape[-1:] != (3,) or self.rotvec.shape != self.translation.shape:
             raise ValueError(
-                "Pose takes a (3,) rotation vector and a (3,) translation, got "
+                "Pose takes a (..., 3) rotation vector and a translation of the same shape, got "
                 f"{self.rotvec.shape} and {self.translation.shape}"
             )
 
