@@ -9,3 +9,8 @@ from ._observations import (
     read_observations as read_observations,
     write_observations as write_observations,
 )
+from ._opencv_yaml import (
+    read_opencv_yaml as read_opencv_yaml,
+    write_opencv_yaml as write_opencv_yaml,
+)
+from ._stripes import read_stripes as read_stripes, write_stripes as write_stripes

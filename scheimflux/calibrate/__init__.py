@@ -1,0 +1,38 @@
+"""Calibration of camera, laser plane and rotary stage — separately and jointly, as one
+parameter pytree solved by optimistix Levenberg–Marquardt with autodiff Jacobians."""
+
+from ._calibrate import (
+    DEFAULT_FREEZE as DEFAULT_FREEZE,
+    DISTORTIONS as DISTORTIONS,
+    MODELS as MODELS,
+    Calibration as Calibration,
+    CameraCalibration as CameraCalibration,
+    PlaneFit as PlaneFit,
+    StageCalibration as StageCalibration,
+    board_stripe_points as board_stripe_points,
+    calibrate as calibrate,
+    calibrate_camera as calibrate_camera,
+    calibrate_stage as calibrate_stage,
+    fit_laser_plane as fit_laser_plane,
+    fit_plane_tls as fit_plane_tls,
+    pixel_footprint_mm as pixel_footprint_mm,
+)
+from ._model import (
+    CalibrationData as CalibrationData,
+    SystemParams as SystemParams,
+    camera_plane_residuals as camera_plane_residuals,
+    camera_residuals as camera_residuals,
+    corner_residuals as corner_residuals,
+    gauge_residuals as gauge_residuals,
+    joint_residuals as joint_residuals,
+    make_data as make_data,
+    stripe_residuals as stripe_residuals,
+)
+from ._solve import (
+    Fit as Fit,
+    NotConvergedError as NotConvergedError,
+    free_spec as free_spec,
+    jacobian as jacobian,
+    least_squares as least_squares,
+    parameter_labels as parameter_labels,
+)

@@ -1,0 +1,208 @@
+"""The calibration's parameter pytree, its data, and the residual functions.
+
+Everything that is calibrated lives in ONE `eqx.Module`, `SystemParams`: the camera, the
+board poses, the laser plane, the rotary stage and the gauge's eccentricity. Residual
+functions take `(params, data)` and return one flat, noise-weighted (unitless) vector, so
+separate and joint calibrations are the same solver on different residual blocks.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..camera._base import AbstractCamera
+from ..geometry._plane import LaserPlane
+from ..geometry._stage import RotaryStage
+from ..geometry._transforms import Pose
+from ..reconstruct._reconstruct import intersect_ray_plane
+
+
+class SystemParams(eqx.Module):
+    """Camera, board poses `T_c_b` (stacked, one per view), laser plane, stage, gauge offset.
+
+    `plane`, `stage` and `eccentricity` are None when not (yet) calibrated.
+    `eccentricity` is the gauge axis's offset from the table axis, in the measurement
+    frame (mm, shape (2,)).
+    """
+
+    camera: AbstractCamera
+    board_poses: Pose
+    plane: LaserPlane | None = None
+    stage: RotaryStage | None = None
+    eccentricity: Float[Array, "2"] | None = None
+
+
+class CalibrationData(eqx.Module):
+    """Observations as padded arrays with weights (0 where missing).
+
+    Missing pixels are replaced by a finite placeholder so no NaN reaches a residual.
+    """
+
+    board: Float[Array, "M 3"]
+    corners: Float[Array, "V M 2"]
+    corner_w: Float[Array, "V M"]
+    stripe: Float[Array, "V K 2"]
+    stripe_w: Float[Array, "V K"]
+    gauge: Float[Array, "F L 2"]
+    gauge_w: Float[Array, "F L"]
+    frame_index: Float[Array, " F"]
+    gauge_radius: Float[Array, ""]
+    sigma_corner_px: Float[Array, ""]
+    sigma_stripe_mm: Float[Array, ""]
+    robust: float | None = eqx.field(static=True, default=None)
+
+
+def _pad(sets: list[np.ndarray], fill: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = max([len(s) for s in sets] + [1])
+    out = np.broadcast_to(fill, (len(sets), n, 2)).copy()
+    w = np.zeros((len(sets), n))
+    for i, s in enumerate(sets):
+        s = np.asarray(s, dtype=np.float64).reshape(-1, 2)
+        ok = np.all(np.isfinite(s), axis=1)
+        out[i, : len(s)][ok] = s[ok]
+        w[i, : len(s)] = ok
+    return out, w
+
+
+def make_data(
+    obs,
+    *,
+    sigma_corner_px: float = 0.03,
+    sigma_stripe_mm: float = 1e-3,
+    robust: float | None = None,
+) -> CalibrationData:
+    """Arrays for the residual functions from an `Observations` record."""
+    centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
+    corners, mask = obs.corners()
+    corners = np.where(mask[..., None], corners, centre)
+    stripe, stripe_w = _pad([v.stripe_px for v in obs.views], centre)
+    if obs.stage is not None:
+        gauge, gauge_w = _pad(obs.stage.frames, centre)
+        radius = obs.stage.gauge_radius_mm
+    else:
+        gauge, gauge_w, radius = np.broadcast_to(centre, (1, 1, 2)).copy(), np.zeros((1, 1)), 1.0
+    return CalibrationData(
+        board=jnp.asarray(obs.board_points_mm),
+        corners=jnp.asarray(corners),
+        corner_w=jnp.asarray(mask.astype(np.float64)),
+        stripe=jnp.asarray(stripe),
+        stripe_w=jnp.asarray(stripe_w),
+        gauge=jnp.asarray(gauge),
+        gauge_w=jnp.asarray(gauge_w),
+        frame_index=jnp.arange(gauge.shape[0], dtype=jnp.float64),
+        gauge_radius=jnp.asarray(radius, dtype=jnp.float64),
+        sigma_corner_px=jnp.asarray(sigma_corner_px, dtype=jnp.float64),
+        sigma_stripe_mm=jnp.asarray(sigma_stripe_mm, dtype=jnp.float64),
+        robust=robust,
+    )
+
+
+def _robustify(r, k):
+    """Huber loss through the square-root trick: `0.5 r'^2 = huber(r)`."""
+    if k is None:
+        return r
+    a = jnp.abs(r)
+    safe = jnp.where(a > k, a, k)
+    return jnp.where(a <= k, r, jnp.sign(r) * jnp.sqrt(2 * k * safe - k * k))
+
+
+def corner_errors_px(params: SystemParams, data: CalibrationData) -> Float[Array, "V M 2"]:
+    """Reprojection errors (px) of every corner; 0 where the corner was not detected."""
+
+    def one_view(pose, uv_obs, w):
+        X = pose.apply(data.board)
+        uv, _ = jax.vmap(params.camera.project_one)(X)
+        return (uv - uv_obs) * w[:, None]
+
+    return jax.vmap(one_view)(params.board_poses, data.corners, data.corner_w)
+
+
+def corner_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
+    """Reprojection errors of the board corners / σ (u and v of every corner)."""
+    r = corner_errors_px(params, data)
+    return _robustify(r.reshape(-1) / data.sigma_corner_px, data.robust)
+
+
+def _laser_points(camera, plane, uv):
+    def one(p):
+        X, _ = intersect_ray_plane(camera.backproject_one(p), plane)
+        return X
+
+    return jax.vmap(one)(uv)
+
+
+def _laser_points_safe(camera, plane, uv):
+    """Ray–plane intersections without the NaN masking (for residuals)."""
+
+    def one(p):
+        ray = camera.backproject_one(p)
+        t = (1.0 - jnp.dot(plane.n, ray.origin)) / jnp.dot(plane.n, ray.direction)
+        return ray.origin + t * ray.direction
+
+    return jax.vmap(one)(uv)
+
+
+def stripe_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
+    """Distance (mm / σ) of each board stripe point's laser-plane point from its board."""
+
+    def one_view(pose, uv, w):
+        X = _laser_points_safe(params.camera, params.plane, uv)
+        n_b = pose.R[:, 2]  # board normal in the camera frame
+        d = X @ n_b - jnp.dot(n_b, pose.translation)
+        return d * w
+
+    r = jax.vmap(one_view)(params.board_poses, data.stripe, data.stripe_w)
+    return _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
+
+
+def gauge_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
+    """Deviation (mm / σ) of reconstructed gauge points from the known radius."""
+
+    def one_frame(uv, w, i):
+        X_c = _laser_points_safe(params.camera, params.plane, uv)
+        X_m = jax.vmap(params.stage.to_measurement, in_axes=(0, None))(X_c, i)
+        r = jnp.linalg.norm(X_m[:, :2] - params.eccentricity, axis=-1)
+        return (r - data.gauge_radius) * w
+
+    r = jax.vmap(one_frame)(data.gauge, data.gauge_w, data.frame_index)
+    r = _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
+    # A cylinder fixes the table axis as a line, not the origin along it nor the turn of
+    # the measurement frame about it. Fix both gauges: the camera origin lies on the
+    # x_m axis (t_m_c = (d, 0, 0)), i.e. the measurement origin is the foot of the
+    # perpendicular from the camera to the table axis.
+    gauge_fix = params.stage.t_m_c[1:] / STAGE_GAUGE_MM
+    return jnp.concatenate([r, gauge_fix])
+
+
+# Scale of the stage gauge-fixing residuals (mm): far below any measurement noise.
+STAGE_GAUGE_MM = 1e-7
+
+
+def camera_residuals(params, data):
+    return corner_residuals(params, data)
+
+
+def plane_residuals(params, data):
+    return stripe_residuals(params, data)
+
+
+def camera_plane_residuals(params, data):
+    return jnp.concatenate([corner_residuals(params, data), stripe_residuals(params, data)])
+
+
+def joint_residuals(params, data):
+    return jnp.concatenate(
+        [
+            corner_residuals(params, data),
+            stripe_residuals(params, data),
+            gauge_residuals(params, data),
+        ]
+    )
+
+
+def stage_only_residuals(params, data):
+    return gauge_residuals(params, data)

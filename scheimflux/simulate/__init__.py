@@ -1,0 +1,61 @@
+"""Ground truth: Snell's-law ray tracing through real lenses, rigs, scenes and images."""
+
+from ._lens import (
+    Lens as Lens,
+    Paraxial as Paraxial,
+    lens_from_dict as lens_from_dict,
+    load_lens as load_lens,
+    paraxial as paraxial,
+    read_lens as read_lens,
+    resolve_lens as resolve_lens,
+    shipped_lenses as shipped_lenses,
+)
+from ._observe import (
+    Truth as Truth,
+    nominal_of as nominal_of,
+    read_truth as read_truth,
+    simulate_observations as simulate_observations,
+    truth_from_dict as truth_from_dict,
+    truth_to_dict as truth_to_dict,
+    write_truth as write_truth,
+)
+from ._render_board import (
+    BoardMap as BoardMap,
+    board_map as board_map,
+    render_checkerboard as render_checkerboard,
+)
+from ._render_stripe import StripeTruth as StripeTruth, render_stripe as render_stripe
+from ._rig import (
+    Rig as Rig,
+    Spot as Spot,
+    build_rig as build_rig,
+    laser_plane_from_angles as laser_plane_from_angles,
+    paper_rig as paper_rig,
+    paraxial_sensor_pose as paraxial_sensor_pose,
+)
+from ._scenes import (
+    BEARING_RADII_MM as BEARING_RADII_MM,
+    RING_GAUGE_RADIUS_MM as RING_GAUGE_RADIUS_MM,
+    BoardView as BoardView,
+    GaugeScan as GaugeScan,
+    ScanFrame as ScanFrame,
+    StepProfile as StepProfile,
+    StripeProfile as StripeProfile,
+    board_poses as board_poses,
+    default_stage as default_stage,
+    gauge_scan as gauge_scan,
+    step_gauge as step_gauge,
+    stripe_on_board as stripe_on_board,
+    trace_points as trace_points,
+)
+from ._trace import (
+    Surfaces as Surfaces,
+    Trace as Trace,
+    aim_ray as aim_ray,
+    intersect_plane as intersect_plane,
+    intersect_surface as intersect_surface,
+    refract as refract,
+    sensor_normal as sensor_normal,
+    sensor_rotation as sensor_rotation,
+    trace as trace,
+)
