@@ -12,13 +12,24 @@ import jax
 if os.environ.get("SCHEIMFLUX_NO_X64", "") in ("", "0"):
     jax.config.update("jax_enable_x64", True)
 
-from . import camera as camera, geometry as geometry, reconstruct as reconstruct
+from . import (
+    calibrate as calibrate,
+    camera as camera,
+    geometry as geometry,
+    io as io,
+    metrology as metrology,
+    reconstruct as reconstruct,
+    simulate as simulate,
+    stripe as stripe,
+    targets as targets,
+)
 from ._presets import (
     paper_laser_plane as paper_laser_plane,
     paper_pinhole as paper_pinhole,
     paper_stage as paper_stage,
     paper_thick_lens as paper_thick_lens,
 )
+from .calibrate import Calibration as Calibration, diagnostics as diagnostics
 from .camera import (
     AbstractCamera as AbstractCamera,
     Pinhole as Pinhole,
@@ -26,11 +37,30 @@ from .camera import (
     ThickLensScheimpflug as ThickLensScheimpflug,
 )
 from .geometry import LaserPlane as LaserPlane, Pose as Pose, RotaryStage as RotaryStage
+from .io import (
+    Observations as Observations,
+    read_calibration as read_calibration,
+    read_observations as read_observations,
+    write_calibration as write_calibration,
+    write_observations as write_observations,
+    write_points as write_points,
+)
+from .metrology import (
+    fit_cylinder as fit_cylinder,
+    fit_plane as fit_plane,
+    step_height as step_height,
+)
 from .reconstruct import (
     Reconstruction as Reconstruction,
     Status as Status,
     stripe_to_camera as stripe_to_camera,
     stripe_to_measurement as stripe_to_measurement,
 )
+from .stripe import (
+    StripeResult as StripeResult,
+    extract_stripe as extract_stripe,
+    extract_stripes as extract_stripes,
+)
+from .targets import Checkerboard as Checkerboard, detect_checkerboard as detect_checkerboard
 
 __version__ = importlib.metadata.version("scheimflux")

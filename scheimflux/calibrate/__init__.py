@@ -17,6 +17,20 @@ from ._calibrate import (
     fit_plane_tls as fit_plane_tls,
     pixel_footprint_mm as pixel_footprint_mm,
 )
+from ._compare import (
+    compare_with_opencv as compare_with_opencv,
+    opencv_calibrate as opencv_calibrate,
+)
+from ._diagnostics import (
+    CrossValidation as CrossValidation,
+    Diagnostics as Diagnostics,
+    cross_validate as cross_validate,
+    diagnostics as diagnostics,
+    plot_residuals as plot_residuals,
+    point_uncertainty as point_uncertainty,
+    residual_function as residual_function,
+    residual_map as residual_map,
+)
 from ._model import (
     CalibrationData as CalibrationData,
     SystemParams as SystemParams,

@@ -360,6 +360,7 @@ class Calibration:
     plane_rms_mm: float
     gauge_rms_mm: float | None
     data: CalibrationData
+    sensor_size: tuple[int, int] = (0, 0)  # (width, height) px
 
     @property
     def camera(self):
@@ -461,6 +462,7 @@ def calibrate(
         plane_rms_mm=_plane_rms(params, data),
         gauge_rms_mm=None if stage is None else _gauge_rms(params, data),
         data=data,
+        sensor_size=(int(obs.width), int(obs.height)),
     )
 
 

@@ -1,5 +1,13 @@
 """Files users exchange: observations, calibrations, stripes, point clouds."""
 
+from ._calibration import (
+    CalibrationFileError as CalibrationFileError,
+    LoadedCalibration as LoadedCalibration,
+    calibration_to_dict as calibration_to_dict,
+    parse_calibration as parse_calibration,
+    read_calibration as read_calibration,
+    write_calibration as write_calibration,
+)
 from ._observations import (
     Nominal as Nominal,
     Observations as Observations,
@@ -13,4 +21,5 @@ from ._opencv_yaml import (
     read_opencv_yaml as read_opencv_yaml,
     write_opencv_yaml as write_opencv_yaml,
 )
+from ._pointcloud import read_ply as read_ply, write_ply as write_ply, write_points as write_points
 from ._stripes import read_stripes as read_stripes, write_stripes as write_stripes

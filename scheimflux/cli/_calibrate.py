@@ -1,0 +1,243 @@
+"""`scheimflux calibrate`: camera, laser plane and rotary stage from an observations file.
+
+Reads OBS.json (scheimflux.observations/1: checkerboard corners, the laser line on the
+boards and optionally a ring-gauge scan on the rotary table), calibrates — the paper's
+separate steps, then by default one joint Levenberg-Marquardt solve of every block —
+prints a summary and writes CAL.json (scheimflux.calibration/1).
+
+The defaults are the most accurate choice: the thick-lens model with radial-tangential
+distortion, solved jointly. An unconverged solve is an error and writes nothing unless
+--allow-unconverged is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+from ._main import CLIError
+
+_MODELS = ("thick-lens", "pinhole")
+_DISTORTIONS = ("radial-tangential", "division", "none")
+_INITS = ("auto", "nominal", "closed-form")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="calibrate camera, laser plane and rotary stage from observations",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("observations", metavar="OBS.json", help="observations file")
+    p.add_argument("--out", required=True, metavar="CAL.json", help="calibration file to write")
+    p.add_argument(
+        "--model", choices=_MODELS, default="thick-lens", help="camera model (default: %(default)s)"
+    )
+    p.add_argument(
+        "--distortion",
+        choices=_DISTORTIONS,
+        default=None,
+        help="lens distortion in the untilted image plane (default: radial-tangential for "
+        "the thick lens, none for the pinhole, which has none)",
+    )
+    p.add_argument(
+        "--init",
+        choices=_INITS,
+        default="auto",
+        help="initial values: the observations' nominal values, homographies (closed-form) "
+        "or auto: nominal when focal length, magnification and tilt are given "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--no-joint",
+        dest="joint",
+        action="store_false",
+        help="stop after the paper's separate steps (no joint refinement)",
+    )
+    p.add_argument(
+        "--freeze",
+        nargs="+",
+        action="extend",
+        metavar="PATH",
+        default=None,
+        help="parameters held fixed, e.g. camera.dx camera.dy camera.f; REPLACES the "
+        "defaults (pixel pitch, f and a tilt gauge; the summary lists them)",
+    )
+    p.add_argument(
+        "--sigma-corner-px",
+        type=float,
+        default=0.03,
+        help="corner noise, weights the corners (default: %(default)s)",
+    )
+    p.add_argument(
+        "--sigma-stripe-px",
+        type=float,
+        default=0.05,
+        help="stripe-centre noise, weights the stripe and gauge points (default: %(default)s)",
+    )
+    p.add_argument(
+        "--robust",
+        type=float,
+        default=None,
+        metavar="K",
+        help="Huber loss with threshold K sigma (e.g. 3) against outliers (default: off)",
+    )
+    p.add_argument(
+        "--max-steps", type=int, default=300, help="LM steps per solve (default: %(default)s)"
+    )
+    p.add_argument(
+        "--allow-unconverged",
+        action="store_true",
+        help='write CAL.json even if a solve did not converge ("converged": false)',
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing CAL.json")
+    p.set_defaults(func=run)
+
+
+def _check(args) -> None:
+    for name in ("sigma_corner_px", "sigma_stripe_px"):
+        v = getattr(args, name)
+        if not (math.isfinite(v) and v > 0):
+            raise CLIError(f"--{name.replace('_', '-')} must be positive, got {v}")
+    if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
+        raise CLIError(f"--robust must be positive, got {args.robust}")
+    if args.max_steps < 1:
+        raise CLIError(f"--max-steps must be at least 1, got {args.max_steps}")
+    if args.model == "pinhole" and args.distortion not in (None, "none"):
+        raise CLIError(
+            "the pinhole model (paper eq. 14) has no distortion; use --distortion none "
+            "or --model thick-lens"
+        )
+
+
+# ----------------------------------------------------------------------------- summary
+
+_UNIT_LABEL = {"mm": "mm", "deg": "deg", "px": "px", "1": ""}
+
+
+def _num(v, scale: float, spec: str) -> str:
+    return "n/a" if v is None else format(v * scale, spec)
+
+
+def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
+    """Readable summary of a calibration document (as written to CAL.json)."""
+    lines = []
+    d = doc.get("diagnostics", {})
+    cam = doc["camera"]
+    dist = cam["distortion"]
+    joint = "joint" if d.get("joint") else "separate steps"
+    lines.append(
+        f"model: {doc['model']}, distortion: {dist['model']}, init: {d.get('init')}, {joint}"
+    )
+    frozen = set(frozen or d.get("frozen", ()))
+
+    def fmt(path, name, entry):
+        unit = _UNIT_LABEL.get(entry["unit"], entry["unit"])
+        mark = "  (fixed)" if path in frozen or path.rsplit(".", 1)[0] in frozen else ""
+        return f"  {name:<6} = {entry['value']:>16.8g} {unit:<3}{mark}"
+
+    lines.append("camera:")
+    for name, entry in cam.items():
+        if name != "distortion":
+            lines.append(fmt(f"camera.{name}", name, entry))
+    for name, entry in dist.items():
+        if name != "model":
+            lines.append(fmt(f"camera.distortion.{name}", name, entry))
+    pl = doc["laser_plane"]
+    n = ", ".join(f"{x:.6f}" for x in pl["unit_normal"])
+    lines.append(
+        f"laser plane: unit normal ({n}), distance {pl['distance_mm']:.4f} mm "
+        f"(n = [{', '.join(f'{x:.6e}' for x in pl['n_per_mm'])}] 1/mm)"
+    )
+    st = doc.get("stage")
+    if st is not None:
+        lines.append("stage (camera -> measurement):")
+        for i, row in enumerate(st["R_m_c"]):
+            label = "R_m_c =" if i == 0 else ""
+            lines.append(f"  {label:<8}[{', '.join(f'{x:+.8f}' for x in row)}]")
+        t = ", ".join(f"{x:.5f}" for x in st["t_m_c_mm"])
+        lines.append(f"  t_m_c = [{t}] mm, delta omega = {st['delta_omega_deg']:.6g} deg")
+        if st.get("gauge_eccentricity_mm") is not None:
+            ex, ey = st["gauge_eccentricity_mm"]
+            lines.append(f"  gauge eccentricity = ({ex * 1e3:.2f}, {ey * 1e3:.2f}) um")
+    else:
+        lines.append("stage: not calibrated (no rotary-stage scan in the observations)")
+    lines.append(f"reprojection RMS: {_num(d.get('reprojection_rms_px'), 1.0, '.4f')} px")
+    lines.append(f"laser-plane fit RMS: {_num(d.get('laser_plane_rms_mm'), 1e3, '.3f')} um")
+    if d.get("gauge_rms_mm") is not None:
+        lines.append(f"gauge RMS: {_num(d['gauge_rms_mm'], 1e3, '.3f')} um")
+    for name, s in d.get("solves", {}).items():
+        ok = "converged" if s["converged"] else f"NOT converged ({s.get('message', '')})"
+        lines.append(f"solve {name:<7}: {s['steps']:>4} steps, {s['time_s']:7.2f} s, {ok}")
+    lines.append(f"frozen: {', '.join(d.get('frozen', [])) or '(none)'}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- run
+
+
+def run(args) -> int:
+    _check(args)
+    from ..calibrate._calibrate import calibrate
+    from ..calibrate._solve import NotConvergedError
+    from ..io._calibration import calibration_to_dict, parse_calibration
+    from ..io._files import check_writable, write_json
+    from ..io._observations import read_observations
+
+    out = check_writable(args.out, overwrite=args.overwrite)  # before the long part
+    obs = read_observations(args.observations)
+    distortion = args.distortion
+    if distortion is None:
+        distortion = "radial-tangential" if args.model == "thick-lens" else "none"
+    print(
+        f"calibrating {args.observations}: {len(obs.views)} views"
+        + (f", {len(obs.stage.frames)} stage frames" if obs.stage is not None else "")
+        + f"; model {args.model}, distortion {distortion}",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    try:
+        cal = calibrate(
+            obs,
+            model=args.model,
+            distortion=distortion,
+            init=args.init,
+            joint=args.joint,
+            freeze=args.freeze,
+            sigma_corner_px=args.sigma_corner_px,
+            sigma_stripe_px=args.sigma_stripe_px,
+            robust=args.robust,
+            max_steps=args.max_steps,
+            throw=False,
+        )
+    except NotConvergedError as err:  # throw=False should prevent it; be safe
+        raise CLIError(f"calibration did not converge: {err}; no file written") from None
+    total = time.perf_counter() - t0
+    extra = {
+        "observations": str(args.observations),
+        "sigma_corner_px": args.sigma_corner_px,
+        "sigma_stripe_px": args.sigma_stripe_px,
+        "robust": args.robust,
+        "total_time_s": total,
+    }
+    doc = calibration_to_dict(cal, diagnostics=extra)
+    parse_calibration(doc)
+    print(format_summary(doc))
+    print(f"total time: {total:.1f} s")
+    failed = [
+        f"{name} ({fit.message or 'not converged'} after {fit.steps} steps)"
+        for name, fit in cal.fits.items()
+        if not fit.converged
+    ]
+    if failed and not args.allow_unconverged:
+        raise CLIError(
+            f"calibration did not converge: {', '.join(failed)}; no file written "
+            "(try --init closed-form, more views, or --allow-unconverged to write it anyway)"
+        )
+    write_json(out, doc, overwrite=args.overwrite)
+    if failed:
+        print(f"warning: wrote an UNCONVERGED calibration ({', '.join(failed)})")
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,259 @@
+"""Point clouds: PLY (binary little-endian and ASCII), `.npy` and JSON.
+
+- PLY: one `vertex` element with `double` properties `x y z` (mm). Binary files are
+  `binary_little_endian 1.0`. Only valid (finite) points are written.
+- `.npy` (from `write_points`): a float64 array `(F, N_max, 3)`, one row per stripe pixel
+  of each frame in the order of the stripes, padded with NaN to the longest frame;
+  invalid points stay in place as NaN rows, so index `[i, k]` is pixel `k` of frame
+  `i`. A single frame given as an `(N, 3)` array is written as `(N, 3)`.
+- JSON (from `write_points`): `{"format": "scheimflux.points/1", "frame": "camera" |
+  "measurement", "unit": "mm", "frames": [[[x, y, z], ...], ...]}`, invalid points left
+  out.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from collections.abc import Sequence
+
+import numpy as np
+
+from ._files import check_writable, write_atomic
+
+POINTS_FORMAT = "scheimflux.points/1"
+FRAMES = ("camera", "measurement")
+POINT_EXTENSIONS = (".json", ".ply", ".npy")
+
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+
+
+def _points3(points, what: str = "points") -> np.ndarray:
+    try:
+        a = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be numbers of shape (N, 3)") from None
+    if a.size == 0:
+        return np.zeros((0, 3))
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{what} must have shape (N, 3), got {a.shape}")
+    return a
+
+
+def _valid_rows(a: np.ndarray, what: str) -> np.ndarray:
+    a = a[~np.isnan(a).any(axis=1)]
+    if not np.isfinite(a).all():
+        raise ValueError(f"{what} contain infinite values")
+    return a
+
+
+def ply_bytes(points, *, binary: bool = True, comments: Sequence[str] = ()) -> bytes:
+    """The PLY file content for `(N, 3)` points (rows with NaN are left out)."""
+    pts = _valid_rows(_points3(points), "points")
+    lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
+    for c in comments:
+        c = str(c)
+        if "\n" in c or "\r" in c:
+            raise ValueError(f"PLY comments must be single lines, got {c!r}")
+        lines.append(f"comment {c}".rstrip())
+    lines += [
+        f"element vertex {len(pts)}",
+        "property double x",
+        "property double y",
+        "property double z",
+        "end_header",
+    ]
+    header = ("\n".join(lines) + "\n").encode("ascii", errors="replace")
+    if binary:
+        return header + np.ascontiguousarray(pts, dtype="<f8").tobytes()
+    body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in pts.tolist())
+    return header + body.encode("ascii")
+
+
+def write_ply(
+    path: str | os.PathLike,
+    points,
+    *,
+    binary: bool = True,
+    overwrite: bool = False,
+    comments: Sequence[str] = (),
+) -> None:
+    """Write `(N, 3)` points (mm) as a PLY file of `double` x, y, z, atomically.
+
+    **Arguments:**
+    - `binary`: `binary_little_endian 1.0` (default) or `ascii 1.0` (full float64
+      precision: shortest round-tripping decimal).
+    - `overwrite`: replace an existing file; otherwise an existing file is an error.
+    - `comments`: single-line `comment` records for the header.
+
+    Rows containing NaN (invalid points) are left out; infinite values are an error.
+    """
+    check_writable(path, overwrite=overwrite)
+    write_atomic(path, ply_bytes(points, binary=binary, comments=comments), overwrite=overwrite)
+
+
+def read_ply(path: str | os.PathLike) -> np.ndarray:
+    """Read the vertices of a PLY file as an `(N, 3)` float64 array of x, y, z.
+
+    Reads ASCII, binary little- and big-endian files whose first element is `vertex`
+    with scalar properties including `x`, `y`, `z` (other properties and later elements
+    are ignored). **Raises:** `ValueError` for anything else.
+    """
+    path = os.fspath(path)
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if not data.startswith(b"ply"):
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic)")
+    end = data.find(b"end_header")
+    if end < 0:
+        raise ValueError(f"{path}: PLY header has no end_header")
+    nl = data.find(b"\n", end)
+    body_start = len(data) if nl < 0 else nl + 1
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt = None
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in header[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                elements[-1][2].append((words[-1], "list"))
+            elif len(words) == 3 and words[1] in _PLY_TYPES:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise ValueError(f"{path}: unsupported PLY property line {line!r}")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
+    if not elements or elements[0][0] != "vertex":
+        raise ValueError(f"{path}: the first PLY element must be 'vertex'")
+    _, n, props = elements[0]
+    names = [p for p, _ in props]
+    if any(t == "list" for _, t in props):
+        raise ValueError(f"{path}: list properties in 'vertex' are not supported")
+    if not {"x", "y", "z"} <= set(names):
+        raise ValueError(f"{path}: PLY vertices need x, y and z properties")
+    if fmt == "ascii":
+        rows = data[body_start:].decode("ascii").split("\n")
+        rows = [r.split() for r in rows if r.strip()][:n]
+        if len(rows) < n or any(len(r) < len(props) for r in rows):
+            raise ValueError(f"{path}: PLY file ends before its {n} vertices")
+        arr = np.array([[float(x) for x in r[: len(props)]] for r in rows], dtype=np.float64)
+        arr = arr.reshape(n, len(props))
+        return np.stack([arr[:, names.index(c)] for c in "xyz"], axis=1)
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(p, order + t) for p, t in props])
+    if len(data) - body_start < n * dtype.itemsize:
+        raise ValueError(f"{path}: PLY file ends before its {n} vertices")
+    rec = np.frombuffer(data, dtype=dtype, count=n, offset=body_start)
+    return np.stack([rec[c].astype(np.float64) for c in "xyz"], axis=1)
+
+
+def _frame_list(frames) -> tuple[list[np.ndarray], bool]:
+    """Frames as a list of `(N_i, 3)` arrays (NaN rows invalid), and whether a single
+    `(N, 3)` array was given."""
+    if hasattr(frames, "points") and hasattr(frames, "status"):  # a Reconstruction
+        frames = np.where(np.asarray(frames.valid)[..., None], np.asarray(frames.points), np.nan)
+    if isinstance(frames, np.ndarray) or hasattr(frames, "__array__"):
+        a = np.asarray(frames, dtype=np.float64)
+        if a.ndim == 2:
+            return [_points3(a)], True
+        if a.ndim == 3 and a.shape[-1] == 3:
+            return list(a), False
+        raise ValueError(f"points must have shape (N, 3) or (F, N, 3), got {a.shape}")
+    out = []
+    for i, f in enumerate(frames):
+        if hasattr(f, "points") and hasattr(f, "status"):
+            f = np.where(np.asarray(f.valid)[..., None], np.asarray(f.points), np.nan)
+        out.append(_points3(f, f"frame {i} points"))
+    return out, False
+
+
+def points_extension(path: str | os.PathLike) -> str:
+    """The point-cloud format of a path (`.json`, `.ply` or `.npy`), or `ValueError`."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext not in POINT_EXTENSIONS:
+        raise ValueError(
+            f"{os.fspath(path)}: unknown point-cloud format {ext or '(no extension)'!r}; "
+            f"use one of {', '.join(POINT_EXTENSIONS)}"
+        )
+    return ext
+
+
+def write_points(
+    path: str | os.PathLike,
+    frames,
+    frame: str = "camera",
+    *,
+    overwrite: bool = False,
+    binary: bool = True,
+) -> None:
+    """Write reconstructed points, picking the format by the file extension.
+
+    **Arguments:**
+    - `frames`: per frame an `(N_i, 3)` array (NaN rows = invalid points) or a
+      `Reconstruction`; or one `(N, 3)` / `(F, N, 3)` array.
+    - `frame`: `"camera"` or `"measurement"`, the frame the points are in (recorded in
+      JSON and PLY files).
+    - `.json`: `{"format": "scheimflux.points/1", "frame", "unit": "mm", "frames"}`,
+      invalid points left out. `.ply`: every valid point of every frame (binary unless
+      `binary=False`). `.npy`: float64 `(F, N_max, 3)` padded with NaN, invalid points
+      kept as NaN rows (`(N, 3)` for a single array of points).
+    """
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+    ext = points_extension(path)
+    check_writable(path, overwrite=overwrite)
+    arrays, single = _frame_list(frames)
+    for i, a in enumerate(arrays):
+        if np.isinf(a).any():
+            raise ValueError(f"frame {i} points contain infinite values")
+    if ext == ".json":
+        doc = {
+            "format": POINTS_FORMAT,
+            "frame": frame,
+            "unit": "mm",
+            "frames": [_valid_rows(a, "points").tolist() for a in arrays],
+        }
+        data: bytes | str = json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n"
+    elif ext == ".ply":
+        pts = np.concatenate([np.zeros((0, 3))] + arrays)
+        data = ply_bytes(
+            pts,
+            binary=binary,
+            comments=(f"scheimflux {frame} frame, mm", f"frames {len(arrays)}"),
+        )
+    else:
+        if single:
+            out = arrays[0]
+        else:
+            n_max = max([len(a) for a in arrays] + [0])
+            out = np.full((len(arrays), n_max, 3), np.nan)
+            for i, a in enumerate(arrays):
+                out[i, : len(a)] = a
+        buf = io.BytesIO()
+        np.save(buf, np.ascontiguousarray(out, dtype=np.float64), allow_pickle=False)
+        data = buf.getvalue()
+    write_atomic(path, data, overwrite=overwrite)

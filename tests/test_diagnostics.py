@@ -1,0 +1,233 @@
+"""Calibration diagnostics: covariance, identifiability warnings, point uncertainty,
+residual maps and plots, the OpenCV comparison and cross-validation."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from scheimflux.calibrate import calibrate, calibrate_camera
+from scheimflux.calibrate._compare import compare_with_opencv
+from scheimflux.calibrate._diagnostics import (
+    cross_validate,
+    diagnostics,
+    plot_residuals,
+    point_uncertainty,
+    residual_function,
+    residual_map,
+)
+from scheimflux.calibrate._solve import split
+from scheimflux.io._observations import View
+from scheimflux.reconstruct._reconstruct import stripe_to_camera
+from scheimflux.simulate import paper_rig, simulate_observations
+from scheimflux.targets._board import Checkerboard
+
+KW = dict(distortion="none", joint=False, throw=False)
+
+
+def _scaled_noise(obs, truth, k):
+    """The same data with the noise realisation scaled by k (k = 0: noise-free)."""
+    views = [
+        View(t_c + k * (v.corners_px - t_c), t_s + k * (v.stripe_px - t_s))
+        for v, t_c, t_s in zip(obs.views, truth.corners_px, truth.stripe_px)
+    ]
+    return dataclasses.replace(obs, views=views)
+
+
+@pytest.fixture(scope="module")
+def data():
+    obs, truth = simulate_observations(
+        paper_rig(), Checkerboard(11, 8, 0.3), n_views=6, stage_scan=False, seed=0
+    )
+    return obs, truth
+
+
+@pytest.fixture(scope="module")
+def cal(data):
+    return calibrate(data[0], **KW)
+
+
+@pytest.fixture(scope="module")
+def cal2(data):
+    return calibrate(_scaled_noise(*data, 2.0), **KW)
+
+
+@pytest.fixture(scope="module")
+def diag_joint(cal):
+    return diagnostics(cal, block="joint")
+
+
+@pytest.fixture(scope="module")
+def stripe_uv(data):
+    return np.asarray(data[1].stripe_px[2])[::60]
+
+
+def test_std_and_correlation_consistent(cal):
+    d = diagnostics(cal)
+    assert d.block == "camera"
+    assert len(d.labels) == d.n_params == len(d.values) == len(d.std)
+    assert np.allclose(d.covariance, d.covariance.T)
+    assert np.allclose(d.std, np.sqrt(np.diag(d.covariance)))
+    assert np.allclose(d.correlation, d.covariance / np.outer(d.std, d.std), atol=1e-10)
+    assert np.all(np.abs(d.correlation) <= 1 + 1e-9)
+    assert 0.5 < d.variance_factor < 2.0  # σ = 0.03 px assumed = simulated
+    assert d.singular_values[0] >= d.singular_values[-1] > 0
+    assert np.isclose(d.condition_number, d.singular_values[0] / d.singular_values[-1])
+    # the a-posteriori variance factor follows the residuals
+    n = d.n_residuals
+    r = np.asarray(cal.fits["camera"].residuals)
+    assert np.isclose(d.variance_factor, np.sum(r**2) / (n - d.n_params))
+    text = d.summary()
+    assert "camera.z0" in text and "board_poses: 6 views" in text
+    assert "board_poses.rotvec" not in text
+    doc = d.to_dict()
+    assert "camera.z0" in doc["std"] and not any(k.startswith("board") for k in doc["std"])
+    m = np.asarray(doc["camera_correlation"]["matrix"])
+    assert m.shape == (len(doc["camera_correlation"]["labels"]),) * 2
+
+
+def test_joint_block_has_plane(diag_joint):
+    assert diag_joint.block == "joint"
+    assert any(lab.startswith("plane.n") for lab in diag_joint.labels)
+    assert "plane.n[2]" in diag_joint.to_dict()["std"]
+
+
+def test_well_posed_has_no_warning_non_identifiable_does(cal):
+    assert diagnostics(cal).warnings == []
+    # freeing f and the tilt together with e (only the pixel pitch fixed): the thick
+    # lens is a 3x3 projective map and cannot determine them all
+    bad = diagnostics(cal, block="camera", freeze=("camera.dx", "camera.dy"))
+    null = [w for w in bad.warnings if w.startswith("non-identifiable")]
+    assert null
+    named = " ".join(null)
+    assert "camera.f" in named and "camera.e" in named
+    assert bad.condition_number > 1e12
+
+
+@pytest.mark.slow
+def test_calibrate_camera_diagnostics(data):
+    cc = calibrate_camera(data[0], distortion="none", max_steps=300, throw=False)
+    assert diagnostics(cc, data[0]).warnings == []
+    bad = diagnostics(cc, data[0], freeze=("camera.dx", "camera.dy"))
+    assert any("camera.f" in w for w in bad.warnings)
+
+
+def test_point_uncertainty_vs_finite_differences(cal, diag_joint, stripe_uv):
+    X, sigma, cov = point_uncertainty(cal, stripe_uv, diag=diag_joint)
+    ref = np.asarray(stripe_to_camera(cal.camera, cal.plane, stripe_uv).points)
+    assert np.allclose(X, ref, atol=1e-9)
+    assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+    assert np.allclose(sigma, np.sqrt(np.einsum("nii->ni", cov)))
+
+    _, params, spec = residual_function(cal, "joint")
+    x0, unravel, static = split(params, spec)
+    idx = diag_joint.select(("camera.", "plane."))
+    import equinox as eqx
+
+    def points(x):
+        p = eqx.combine(unravel(x), static)
+        return np.asarray(stripe_to_camera(p.camera, p.plane, stripe_uv).points)
+
+    cols = []
+    for k in idx:
+        h = 1e-6 * max(1.0, abs(float(x0[k])))
+        if float(x0[k]) != 0 and abs(float(x0[k])) < 1e-2:  # the plane's n (1/mm)
+            h = 1e-6 * abs(float(x0[k]))
+        e = jnp.zeros_like(x0).at[k].set(h)
+        cols.append((points(x0 + e) - points(x0 - e)) / (2 * h))
+    J = np.stack(cols, axis=-1)  # (N, 3, q)
+    S = diag_joint.covariance[np.ix_(idx, idx)]
+    cov_fd = np.einsum("nij,jk,nlk->nil", J, S, J)
+    assert np.allclose(np.sqrt(np.einsum("nii->ni", cov_fd)), sigma, rtol=1e-3)
+
+
+def test_point_uncertainty_vs_monte_carlo(cal, diag_joint, stripe_uv):
+    _, sigma, cov = point_uncertainty(cal, stripe_uv, diag=diag_joint)
+    _, params, spec = residual_function(cal, "joint")
+    x0, unravel, static = split(params, spec)
+    idx = diag_joint.select(("camera.", "plane."))
+    S = diag_joint.covariance[np.ix_(idx, idx)]
+    w, V = np.linalg.eigh(S)
+    L = V * np.sqrt(np.clip(w, 0, None))
+    rng = np.random.default_rng(1)
+    samples = x0[idx] + jnp.asarray(rng.standard_normal((4000, len(idx))) @ L.T)
+    import equinox as eqx
+
+    from scheimflux.reconstruct._reconstruct import intersect_ray_plane
+
+    def points(xs):
+        p = eqx.combine(unravel(x0.at[idx].set(xs)), static)
+        one = lambda q: intersect_ray_plane(p.camera.backproject_one(q), p.plane)[0]  # noqa: E731
+        return jax.vmap(one)(jnp.asarray(stripe_uv))
+
+    P = np.asarray(jax.jit(jax.vmap(points))(samples))  # (K, N, 3)
+    mc = P.std(axis=0)
+    assert np.all(np.abs(mc / sigma - 1) < 0.1)
+
+
+def test_point_sigma_scales_with_noise(cal, cal2, stripe_uv):
+    _, s1, _ = point_uncertainty(cal, stripe_uv)
+    _, s2, _ = point_uncertainty(cal2, stripe_uv)
+    ratio = np.median(s2 / s1)
+    assert 1.6 < ratio < 2.5
+    d1, d2 = diagnostics(cal), diagnostics(cal2)
+    assert 1.6 < np.median(d2.std / d1.std) < 2.5
+
+
+def test_point_uncertainty_rejects_bad_frame(cal, stripe_uv):
+    with pytest.raises(ValueError, match="frame"):
+        point_uncertainty(cal, stripe_uv, frame="board")
+    with pytest.raises(ValueError, match="stage"):
+        point_uncertainty(cal, stripe_uv, frame="measurement", frame_index=0)
+
+
+def test_residual_map(cal, data):
+    obs = data[0]
+    mu, mv, rms, counts = residual_map(cal, bins=(16, 12), size=(obs.width, obs.height))
+    assert mu.shape == mv.shape == rms.shape == counts.shape == (12, 16)
+    assert counts.sum() == int(np.asarray(cal.data.corner_w).sum())
+    ok = counts > 0
+    assert np.all(np.isfinite(rms[ok])) and np.all(np.isnan(rms[~ok]))
+    assert np.all(rms[ok] >= np.hypot(mu[ok], mv[ok]) - 1e-12)
+    # without the sensor size: the grid spans the detected corners
+    assert residual_map(cal, bins=(4, 3))[3].sum() == counts.sum()
+
+
+def test_plot_writes_png(cal, tmp_path):
+    pytest.importorskip("matplotlib")
+    path = tmp_path / "residuals.png"
+    plot_residuals(cal, path, bins=(8, 6))
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_compare_with_opencv(cal, data):
+    out = compare_with_opencv(data[0], cal, repeats=1)
+    assert set(out) == {"opencv", "opencv_tilted", "scheimflux"}
+    for v in out.values():
+        assert np.isfinite(v["rms_px"]) and np.isfinite(v["time_s"])
+        assert np.isfinite(v["plane_rms_um"])
+    ours = out["scheimflux"]["rms_px"]
+    # the tilted OpenCV model fits these (noisy, σ = 0.03 px) corners about as well
+    assert abs(out["opencv_tilted"]["rms_px"] / ours - 1) < 0.3
+    assert out["opencv"]["rms_px"] > out["opencv_tilted"]["rms_px"]
+    assert out["opencv_tilted"]["dist_coeffs"].shape == (14,)
+
+
+@pytest.mark.slow
+def test_cross_validate(data):
+    noisy = cross_validate(data[0], **KW)
+    clean = cross_validate(_scaled_noise(*data, 0.0), **KW)
+    for cv in (noisy, clean):
+        assert cv.n_points == sum(len(s) for s in data[1].stripe_px)
+        for v in (cv.rms_um, cv.max_um, cv.aligned_rms_um, cv.plane_angle_urad):
+            assert np.isfinite(v) and v >= 0
+        assert cv.aligned_rms_um <= cv.rms_um + 1e-9
+        assert cv.views == ([0, 2, 4], [1, 3, 5])
+
+
+def test_cross_validate_needs_six_views(data):
+    obs = dataclasses.replace(data[0], views=data[0].views[:5])
+    with pytest.raises(ValueError, match="6 views"):
+        cross_validate(obs)
