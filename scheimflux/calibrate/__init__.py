@@ -49,4 +49,5 @@ from ._solve import (
     jacobian as jacobian,
     least_squares as least_squares,
     parameter_labels as parameter_labels,
+    refine as refine,
 )

@@ -244,3 +244,33 @@ def _result_message(result, r) -> str:
         if member is not None and result == member:
             return name.replace("_", " ")
     return "optimistix reported failure"
+
+
+def refine(
+    fn: Callable,
+    params,
+    data,
+    *,
+    freeze: Sequence[str] = (),
+    spec=None,
+    max_steps: int = 50,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+):
+    """Pure, differentiable re-solve of `fn` from `params` (typically an optimum).
+
+    Unlike `least_squares` this has no Python-side checks, so it can be traced: the
+    derivative of the solution w.r.t. `data` (e.g. an observed corner) comes from
+    optimistix's implicit adjoint, i.e. the implicit function theorem at the optimum.
+    """
+    if spec is None:
+        spec = free_spec(params, freeze)
+    x0, unravel, static = split(params, spec)
+    sol = optx.least_squares(
+        _unscaled,
+        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        x0,
+        (fn, unravel, static, data),
+        max_steps=max_steps,
+    )
+    return eqx.combine(unravel(sol.value), static)
