@@ -262,7 +262,7 @@ def test_reconstruct_reports_invalid_points(tmp_path, capsys):
     [
         ("no-stage", "--frame measurement needs a calibrated rotary stage"),
         ("missing-cal", "calibration file not found"),
-        ("missing-stripes", "No such file"),
+        ("missing-stripes", "stripes file not found"),
         ("malformed-cal", "not valid JSON"),
         ("missing-key", "missing key laser_plane"),
         ("bad-stripes", "frame 0 must be a list of [u, v] number pairs"),

@@ -14,11 +14,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+
+from ._files import load_json, write_atomic
 
 FORMAT = "scheimflux.stripes/1"
 
@@ -62,21 +63,11 @@ def write_stripes(
         if not np.isfinite(arr).all():
             raise ValueError(f"frame {i}: points contain infinite values")
         out.append([[float(u), float(v)] for u, v in arr])
-    if not overwrite and os.path.exists(path):
-        raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".stripes-", suffix=".json.tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump({"format": FORMAT, "frames": out}, fh, separators=(",", ":"))
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    write_atomic(
+        path,
+        json.dumps({"format": FORMAT, "frames": out}, separators=(",", ":")) + "\n",
+        overwrite=overwrite,
+    )
 
 
 def read_stripes(path: str | os.PathLike) -> list[np.ndarray]:
@@ -87,11 +78,7 @@ def read_stripes(path: str | os.PathLike) -> list[np.ndarray]:
     the wrong shape or non-finite numbers.
     """
     path = os.fspath(path)
-    with open(path, encoding="utf-8") as fh:
-        try:
-            data = json.load(fh)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: not valid JSON ({err})") from None
+    data = load_json(path, "stripes")
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object with a 'frames' key")
     fmt = data.get("format", FORMAT)
