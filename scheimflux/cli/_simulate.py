@@ -8,6 +8,9 @@ Writes, into the folder given by --out,
                       (scheimflux.truth/1);
   scan_stripes.json   the gauge scan's stripe pixels per frame (scheimflux.stripes/1:
                       the input of `scheimflux reconstruct`).
+With --images, also rendered images for `scheimflux detect`:
+  images/view_<k>_board.png, images/view_<k>_stripe.png   one pair per board pose;
+  images/scan/frame_<i>.png                              the gauge scan's frames.
 Pixels come from Snell's-law ray tracing onto the tilted sensor, never from a camera
 model. The default rig is the paper's x1.5 Scheimpflug system: the shipped double Gauss
 scaled to f = 97 mm, the sensor tilted as in the paper's Table 1.
@@ -70,6 +73,18 @@ def register(subparsers) -> None:
         action="store_true",
         help="skip the real-ray focus refinement of the sensor pose (faster)",
     )
+    p.add_argument(
+        "--images",
+        action="store_true",
+        help="also render the board, stripe and scan images into OUT/images (slow: "
+        "seconds per image)",
+    )
+    p.add_argument(
+        "--ambient",
+        choices=("dark", "low", "bright"),
+        default="low",
+        help="background light of the rendered stripe images (default: %(default)s)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
 
@@ -120,6 +135,10 @@ def run(args) -> int:
         raise CLIError(f"--out {out} exists and is not a folder")
     paths = [os.path.join(out, name) for name in _FILES]
     existing = [p for p in paths if os.path.exists(p)]
+    images = os.path.join(out, "images")
+    if getattr(args, "images", False) and os.path.isdir(images) and not args.overwrite:
+        if any(n.endswith(".png") for n in os.listdir(images)):
+            existing.append(images)
     if existing and not args.overwrite:
         raise CLIError(f"{existing[0]} exists; pass --overwrite to replace it")
     square = args.square_mm
@@ -165,4 +184,18 @@ def run(args) -> int:
             f"{obs.stage.delta_omega_deg:g} deg apart, {scan_pts} stripe points"
         )
     print(f"wrote {', '.join(paths)}")
+    if getattr(args, "images", False):
+        import time
+
+        from ..simulate._images import write_scene_images
+
+        t0 = time.perf_counter()
+        written = write_scene_images(
+            images, rig, board, truth, ambient=args.ambient, seed=args.seed, overwrite=True
+        )
+        dt = time.perf_counter() - t0
+        print(
+            f"rendered {len(written)} images into {images} (scan frames in "
+            f"{os.path.join(images, 'scan')}) in {dt:.1f} s"
+        )
     return 0

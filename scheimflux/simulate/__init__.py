@@ -24,6 +24,7 @@ from ._render_board import (
     board_map as board_map,
     render_checkerboard as render_checkerboard,
 )
+from ._images import write_scene_images as write_scene_images
 from ._render_stripe import StripeTruth as StripeTruth, render_stripe as render_stripe
 from ._rig import (
     Rig as Rig,
