@@ -1,5 +1,6 @@
 """Ground truth: Snell's-law ray tracing through real lenses, rigs, scenes and images."""
 
+from ._images import write_scene_images as write_scene_images
 from ._lens import (
     Lens as Lens,
     Paraxial as Paraxial,
@@ -24,7 +25,6 @@ from ._render_board import (
     board_map as board_map,
     render_checkerboard as render_checkerboard,
 )
-from ._images import write_scene_images as write_scene_images
 from ._render_stripe import StripeTruth as StripeTruth, render_stripe as render_stripe
 from ._rig import (
     Rig as Rig,
