@@ -34,7 +34,6 @@ from ._model import (
     gauge_residuals,
     joint_residuals,
     make_data,
-    stage_only_residuals,
     stripe_residuals,
 )
 from ._solve import Fit, least_squares
@@ -322,7 +321,7 @@ def calibrate_stage(
     poses = Pose(jnp.zeros((1, 3)), jnp.zeros((1, 3)))
     params = SystemParams(camera, poses, plane, stage, jnp.zeros(2))
     fit = least_squares(
-        stage_only_residuals,
+        gauge_residuals,
         params,
         data,
         freeze=("camera", "board_poses", "plane", "stage.delta_omega"),

@@ -18,7 +18,6 @@ from ..camera._base import AbstractCamera
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
-from ..reconstruct._reconstruct import intersect_ray_plane
 
 
 class SystemParams(eqx.Module):
@@ -127,14 +126,6 @@ def corner_residuals(params: SystemParams, data: CalibrationData) -> Float[Array
     return _robustify(r.reshape(-1) / data.sigma_corner_px, data.robust)
 
 
-def _laser_points(camera, plane, uv):
-    def one(p):
-        X, _ = intersect_ray_plane(camera.backproject_one(p), plane)
-        return X
-
-    return jax.vmap(one)(uv)
-
-
 def _laser_points_safe(camera, plane, uv):
     """Ray–plane intersections without the NaN masking (for residuals)."""
 
@@ -186,10 +177,6 @@ def camera_residuals(params, data):
     return corner_residuals(params, data)
 
 
-def plane_residuals(params, data):
-    return stripe_residuals(params, data)
-
-
 def camera_plane_residuals(params, data):
     return jnp.concatenate([corner_residuals(params, data), stripe_residuals(params, data)])
 
@@ -202,7 +189,3 @@ def joint_residuals(params, data):
             gauge_residuals(params, data),
         ]
     )
-
-
-def stage_only_residuals(params, data):
-    return gauge_residuals(params, data)
