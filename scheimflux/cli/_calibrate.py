@@ -13,10 +13,9 @@ distortion, solved jointly. An unconverged solve is an error and writes nothing 
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
-from ._main import CLIError
+from ._common import CLIError, require_positive
 
 _MODELS = ("thick-lens", "pinhole")
 _DISTORTIONS = ("radial-tangential", "division", "none")
@@ -97,12 +96,7 @@ def register(subparsers) -> None:
 
 
 def _check(args) -> None:
-    for name in ("sigma_corner_px", "sigma_stripe_px"):
-        v = getattr(args, name)
-        if not (math.isfinite(v) and v > 0):
-            raise CLIError(f"--{name.replace('_', '-')} must be positive, got {v}")
-    if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
-        raise CLIError(f"--robust must be positive, got {args.robust}")
+    require_positive(args, "sigma_corner_px", "sigma_stripe_px", "robust")
     if args.max_steps < 1:
         raise CLIError(f"--max-steps must be at least 1, got {args.max_steps}")
     if args.model == "pinhole" and args.distortion not in (None, "none"):

@@ -27,39 +27,26 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import sys
 
-import cv2
 import numpy as np
-from tqdm import tqdm
 
-from ._main import CLIError
+from ._common import (
+    CLIError,
+    list_images,
+    natural_key,
+    progress,
+    read_grey,
+    refuse_to_clobber,
+    require_positive,
+    warn,
+)
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp")
 _VIEW = re.compile(r"^view_(\d+)_(board|stripe)\.(png|tif|tiff|bmp)$", re.IGNORECASE)
-_PROG = "scheimflux detect"
-
-
-def _natural_key(name: str) -> list:
-    return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in re.split(r"(\d+)", name)]
 
 
 def _report(message: str) -> None:
-    tqdm.write(f"{_PROG}: {message}", file=sys.stderr)
-
-
-def _read_grey(path: str) -> np.ndarray | None:
-    """The image as a 2-D array (uint8/uint16/float), or None when it cannot be read."""
-    try:
-        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    if image is None or image.size == 0:
-        return None
-    if image.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        image = cv2.cvtColor(image, code)
-    return image if image.ndim == 2 else None
+    warn("detect", message)
 
 
 def find_views(folder: str) -> tuple[list[tuple[int, str | None, str | None]], list[str]]:
@@ -68,7 +55,7 @@ def find_views(folder: str) -> tuple[list[tuple[int, str | None, str | None]], l
         raise CLIError(f"{folder} is not a folder")
     views: dict[int, dict[str, str]] = {}
     ignored = []
-    for name in sorted(os.listdir(folder), key=_natural_key):
+    for name in sorted(os.listdir(folder), key=natural_key):
         path = os.path.join(folder, name)
         m = _VIEW.match(name)
         if m is None or not os.path.isfile(path):
@@ -149,14 +136,10 @@ def _stripe(image, width, path) -> np.ndarray:
 
 
 def _check_args(args) -> None:
-    if not (args.square_mm > 0):
-        raise CLIError(f"--square-mm must be positive, got {args.square_mm}")
+    require_positive(args, "square_mm")
     if any(not (p > 0) for p in args.pixel_pitch_mm):
         raise CLIError(f"--pixel-pitch-mm must be positive, got {args.pixel_pitch_mm}")
-    for name in ("focal_length_mm", "magnification", "gauge_radius_mm", "stripe_width_px"):
-        value = getattr(args, name)
-        if value is not None and not (value > 0):
-            raise CLIError(f"--{name.replace('_', '-')} must be positive, got {value}")
+    require_positive(args, "focal_length_mm", "magnification", "gauge_radius_mm", "stripe_width_px")
     if args.scan is not None:
         if args.delta_omega_deg is None or args.gauge_radius_mm is None:
             raise CLIError("--scan needs --delta-omega-deg and --gauge-radius-mm")
@@ -164,8 +147,7 @@ def _check_args(args) -> None:
             raise CLIError(f"--scan {args.scan} is not a folder")
     elif args.delta_omega_deg is not None or args.gauge_radius_mm is not None:
         raise CLIError("--delta-omega-deg and --gauge-radius-mm need --scan SCAN_DIR")
-    if os.path.exists(args.out) and not args.overwrite:
-        raise CLIError(f"{args.out} exists; pass --overwrite to replace it")
+    refuse_to_clobber(args.out, overwrite=args.overwrite)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -190,13 +172,12 @@ def run(args: argparse.Namespace) -> int:
     views: list = []
     n_found = 0
     problems = 0
-    bar = tqdm(entries, desc="detect", unit="view", file=sys.stderr, disable=None)
-    for k, board_path, stripe_path in bar:
+    for k, board_path, stripe_path in progress(entries, "detect", "view"):
         if board_path is None:
             _report(f"view {k}: {os.path.basename(stripe_path)} has no board image; ignored")
             problems += 1
             continue
-        image = _read_grey(board_path)
+        image = read_grey(board_path)
         if image is None:
             _report(f"skipped unreadable image {os.path.basename(board_path)} (view {k})")
             problems += 1
@@ -214,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         if stripe_path is None:
             _report(f"view {k}: no stripe image (view_{k}_stripe.png); empty stripe list")
         else:
-            simg = _read_grey(stripe_path)
+            simg = read_grey(stripe_path)
             if simg is None:
                 problems += 1
                 _report(f"skipped unreadable image {os.path.basename(stripe_path)} (view {k})")
@@ -222,20 +203,15 @@ def run(args: argparse.Namespace) -> int:
                 size(simg, stripe_path)
                 stripe = _stripe(simg, args.stripe_width_px, stripe_path)
         views.append(View(result.corners_px, stripe))
-    bar.close()
 
     stage = None
     if args.scan is not None:
-        paths = [
-            os.path.join(args.scan, n)
-            for n in sorted(os.listdir(args.scan), key=_natural_key)
-            if n.lower().endswith(IMAGE_SUFFIXES) and os.path.isfile(os.path.join(args.scan, n))
-        ]
+        paths = list_images(args.scan, IMAGE_SUFFIXES)
         if not paths:
             raise CLIError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in --scan {args.scan}")
         frames = []
-        for path in tqdm(paths, desc="scan", unit="frame", file=sys.stderr, disable=None):
-            image = _read_grey(path)
+        for path in progress(paths, "scan", "frame"):
+            image = read_grey(path)
             if image is None:
                 problems += 1
                 _report(f"unreadable scan frame {os.path.basename(path)} kept as an empty frame")
@@ -264,10 +240,7 @@ def run(args: argparse.Namespace) -> int:
         nominal=nominal,
         stage=stage,
     )
-    try:
-        write_observations(args.out, obs, overwrite=args.overwrite)
-    except FileExistsError as err:
-        raise CLIError(str(err)) from None
+    write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in views)
     print(
         f"{n_found} of {len(views)} view(s) with the board found, {n_stripe} stripe points"

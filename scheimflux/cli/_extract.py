@@ -10,35 +10,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import sys
 
-import cv2
 import numpy as np
-from tqdm import tqdm
 
 from ..io._stripes import write_stripes
 from ..stripe._extract import extract_stripe
-from ._main import CLIError
+from ._common import CLIError, list_images, progress, read_grey, refuse_to_clobber, warn
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
-
-
-def natural_key(name: str) -> list:
-    """Sort key that orders embedded numbers by value: `f2 < f10`."""
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
-
-
-def list_frames(folder: str) -> list[str]:
-    """Image files in `folder`, natural order."""
-    if not os.path.isdir(folder):
-        raise CLIError(f"{folder} is not a folder")
-    names = [
-        n
-        for n in os.listdir(folder)
-        if n.lower().endswith(IMAGE_SUFFIXES) and os.path.isfile(os.path.join(folder, n))
-    ]
-    return [os.path.join(folder, n) for n in sorted(names, key=natural_key)]
 
 
 def register(subparsers) -> None:
@@ -69,28 +48,19 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    paths = list_frames(args.frames_dir)
+    paths = list_images(args.frames_dir, IMAGE_SUFFIXES)
     if not paths:
         raise CLIError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in {args.frames_dir}")
-    if os.path.exists(args.out) and not args.overwrite:
-        raise CLIError(f"{args.out} exists; pass --overwrite to replace it")
+    refuse_to_clobber(args.out, overwrite=args.overwrite)
     frames: list[np.ndarray] = []
     skipped: list[str] = []
     n_points = 0
-    bar = tqdm(
-        paths, desc="extract", unit="frame", file=sys.stderr, disable=not sys.stderr.isatty()
-    )
-    for path in bar:
-        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-        if image is not None and image.ndim == 3:
-            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cv2.cvtColor(image, code)
-        if image is None or image.size == 0:
-            skipped.append(os.path.basename(path))
-            tqdm.write(
-                f"scheimflux extract: skipped unreadable image {os.path.basename(path)}",
-                file=sys.stderr,
-            )
+    for path in progress(paths, "extract", "frame"):
+        name = os.path.basename(path)
+        image = read_grey(path)
+        if image is None:
+            skipped.append(name)
+            warn("extract", f"skipped unreadable image {name}")
             frames.append(np.zeros((0, 2)))
             continue
         try:
@@ -98,21 +68,15 @@ def run(args: argparse.Namespace) -> int:
                 image, method=args.method, width_px=args.width_px, orientation=args.orientation
             )
         except ValueError as err:
-            skipped.append(os.path.basename(path))
-            tqdm.write(
-                f"scheimflux extract: skipped {os.path.basename(path)}: {err}", file=sys.stderr
-            )
+            skipped.append(name)
+            warn("extract", f"skipped {name}: {err}")
             frames.append(np.zeros((0, 2)))
             continue
         frames.append(result.valid_uv)
         n_points += len(frames[-1])
-    bar.close()
     if len(skipped) == len(paths):
         raise CLIError(f"none of the {len(paths)} images in {args.frames_dir} could be read")
-    try:
-        write_stripes(args.out, frames, overwrite=args.overwrite)
-    except FileExistsError as err:
-        raise CLIError(str(err)) from None
+    write_stripes(args.out, frames, overwrite=args.overwrite)
     read = len(paths) - len(skipped)
     print(
         f"extracted {n_points} points from {read} frame(s) into {args.out}"

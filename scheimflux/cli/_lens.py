@@ -13,7 +13,7 @@ import argparse
 import json
 import math
 
-from ._main import CLIError
+from ._common import CLIError
 
 
 def register(subparsers) -> None:

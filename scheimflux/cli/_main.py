@@ -3,7 +3,9 @@
 Each subcommand lives in its own module with two functions:
 `register(subparsers)` adds its parser and sets `func=run`, and `run(args) -> int`.
 Errors that a user can fix are raised as `CLIError` (or `ValueError`/`FileNotFoundError`
-from the readers) and printed as one line, never as a traceback.
+from the readers) and printed as one line, never as a traceback. Helpers the subcommands
+share (`CLIError`, `refuse_to_clobber`, `require_positive`, image-folder reading) live in
+`_common`.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import argparse
 import importlib
 import os
 import sys
+
+from ._common import CLIError
 
 # Subcommand modules, in the order `--help` lists them.
 _SUBCOMMANDS = (
@@ -23,10 +27,6 @@ _SUBCOMMANDS = (
     "_calibrate",
     "_reconstruct",
 )
-
-
-class CLIError(Exception):
-    """An error the user can fix; printed without a traceback."""
 
 
 def _enable_compilation_cache() -> None:

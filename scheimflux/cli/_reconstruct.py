@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from ._main import CLIError
+from ._common import CLIError
 
 _REASONS = {
     1: "invalid pixel (not finite, or undistortion failed)",

@@ -22,7 +22,7 @@ import argparse
 import math
 import os
 
-from ._main import CLIError
+from ._common import CLIError, refuse_to_clobber, require_positive
 
 _FILES = ("observations.json", "truth.json", "scan_stripes.json")
 
@@ -96,14 +96,8 @@ def _check(args) -> None:
         raise CLIError(f"--views must be at least 1, got {args.views}")
     if args.frames < 0:
         raise CLIError(f"--frames must be >= 0, got {args.frames}")
-    for name in ("corner_noise_px", "stripe_noise_px"):
-        v = getattr(args, name)
-        if not (math.isfinite(v) and v >= 0):
-            raise CLIError(f"--{name.replace('_', '-')} must be >= 0, got {v}")
-    if not (math.isfinite(args.gauge_radius_mm) and args.gauge_radius_mm > 0):
-        raise CLIError(f"--gauge-radius-mm must be positive, got {args.gauge_radius_mm}")
-    if args.square_mm is not None and not (math.isfinite(args.square_mm) and args.square_mm > 0):
-        raise CLIError(f"--square-mm must be positive, got {args.square_mm}")
+    require_positive(args, "corner_noise_px", "stripe_noise_px", zero_ok=True)
+    require_positive(args, "gauge_radius_mm", "square_mm")
 
 
 def _build_rig(args):
@@ -134,13 +128,12 @@ def run(args) -> int:
     if os.path.exists(out) and not os.path.isdir(out):
         raise CLIError(f"--out {out} exists and is not a folder")
     paths = [os.path.join(out, name) for name in _FILES]
-    existing = [p for p in paths if os.path.exists(p)]
     images = os.path.join(out, "images")
-    if getattr(args, "images", False) and os.path.isdir(images) and not args.overwrite:
-        if any(n.endswith(".png") for n in os.listdir(images)):
-            existing.append(images)
-    if existing and not args.overwrite:
-        raise CLIError(f"{existing[0]} exists; pass --overwrite to replace it")
+    outputs = list(paths)
+    if getattr(args, "images", False) and os.path.isdir(images):
+        if any(n.endswith(".png") for n in os.listdir(images)):  # an earlier --images run
+            outputs.append(images)
+    refuse_to_clobber(*outputs, overwrite=args.overwrite)
     square = args.square_mm
     if square is None:
         square = round(0.3 * 1.5 / args.magnification, 3)

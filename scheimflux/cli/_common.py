@@ -1,0 +1,94 @@
+"""Helpers shared by the subcommand modules: the user-error type, option checks, the
+"never clobber an output without --overwrite" check, and reading a folder of images.
+
+Errors are raised, never printed here: `_main.main` prints any `CLIError` (or
+`ValueError`, `FileNotFoundError`, `FileExistsError`, ...) as one line and exits 1.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import sys
+
+import numpy as np
+
+
+class CLIError(Exception):
+    """An error the user can fix; printed without a traceback."""
+
+
+def refuse_to_clobber(*paths: str, overwrite: bool) -> None:
+    """Raise `CLIError` naming the first of `paths` that exists, unless `overwrite`.
+
+    Call it before the long part of a command, so nothing is computed for nothing."""
+    if overwrite:
+        return
+    for path in paths:
+        if os.path.exists(path):
+            raise CLIError(f"{path} exists; pass --overwrite to replace it")
+
+
+def require_positive(args, *names: str, zero_ok: bool = False) -> None:
+    """Each option `names` (argparse dests) must be a finite number > 0 (>= 0 with
+    `zero_ok`); an option left at None is skipped. The message names the flag:
+    `--square-mm must be positive, got -1.0`."""
+    for name in names:
+        value = getattr(args, name)
+        if value is None:
+            continue
+        if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
+            need = ">= 0" if zero_ok else "positive"
+            raise CLIError(f"--{name.replace('_', '-')} must be {need}, got {value}")
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders embedded numbers by value: `f2 < f10`."""
+    return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in re.split(r"(\d+)", name)]
+
+
+def list_images(folder: str, suffixes: tuple[str, ...]) -> list[str]:
+    """The files in `folder` whose names end in one of `suffixes` (any case), in natural
+    name order."""
+    if not os.path.isdir(folder):
+        raise CLIError(f"{folder} is not a folder")
+    names = [
+        n
+        for n in os.listdir(folder)
+        if n.lower().endswith(suffixes) and os.path.isfile(os.path.join(folder, n))
+    ]
+    return [os.path.join(folder, n) for n in sorted(names, key=natural_key)]
+
+
+def read_grey(path: str) -> np.ndarray | None:
+    """The image as a 2-D array (uint8/uint16/float), or None when it cannot be read."""
+    import cv2
+
+    try:
+        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+        if image is None or image.size == 0:
+            return None
+        if image.ndim == 3:
+            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+            image = cv2.cvtColor(image, code)
+    except cv2.error:
+        return None
+    return image if image.ndim == 2 else None
+
+
+def progress(items, desc: str, unit: str):
+    """A progress bar on stderr, shown only when stderr is a terminal."""
+    from tqdm import tqdm
+
+    return tqdm(items, desc=desc, unit=unit, file=sys.stderr, disable=None)
+
+
+def warn(command: str, message: str) -> None:
+    """`scheimflux COMMAND: message` on stderr, without breaking a progress bar."""
+    from tqdm import tqdm
+
+    tqdm.write(f"scheimflux {command}: {message}", file=sys.stderr)
