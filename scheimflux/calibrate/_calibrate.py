@@ -8,6 +8,7 @@ import math
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -181,8 +182,15 @@ def calibrate_camera(
     return CameraCalibration(fit.params.camera, fit.params.board_poses, fit, rms, how)
 
 
+# Compiled residual evaluations for the summaries (eager evaluation would dispatch every
+# operation of the distortion's fixed point separately).
+_corner_errors_jit = eqx.filter_jit(corner_errors_px)
+_stripe_residuals_jit = eqx.filter_jit(stripe_residuals)
+_gauge_residuals_jit = eqx.filter_jit(gauge_residuals)
+
+
 def _rms_px(params, data: CalibrationData) -> float:
-    r = np.asarray(corner_errors_px(params, data))
+    r = np.asarray(_corner_errors_jit(params, data))
     n = float(np.sum(np.asarray(data.corner_w)))
     return float(np.sqrt(np.sum(r**2) / (2 * n)))
 
@@ -200,22 +208,41 @@ class PlaneFit:
         return float(np.sqrt(np.mean(self.residuals_mm**2)))
 
 
+@eqx.filter_jit
+def _onto_planes(camera, normals, uv):
+    """Each pixel's ray meets its own plane `n · X = 1` (rows of `normals`)."""
+
+    def one(p, n):
+        ray = camera.backproject_one(p)
+        t = (1.0 - jnp.dot(n, ray.origin)) / jnp.dot(n, ray.direction)
+        return ray.origin + t * ray.direction
+
+    return jax.vmap(one)(uv, normals)
+
+
+def _pad_pow2(x: np.ndarray, minimum: int = 256) -> np.ndarray:
+    """Pad rows (repeating the first) to a power of two, so compiled shapes recur."""
+    m = max(minimum, 1 << (len(x) - 1).bit_length())
+    return np.concatenate([x, np.repeat(x[:1], m - len(x), axis=0)])
+
+
 def board_stripe_points(camera, poses: Pose, obs: Observations) -> np.ndarray:
-    """Stripe pixels on each board → 3-D points where their rays meet the board plane."""
-    pts = []
+    """Stripe pixels on each board → 3-D points where their rays meet the board plane
+    (all views in one compiled call)."""
+    R = np.asarray(jax.vmap(lambda p: p.R)(poses))
+    t = np.asarray(poses.translation)
+    uv, normals = [], []
     for i, view in enumerate(obs.views):
-        uv = np.asarray(view.stripe_px).reshape(-1, 2)
-        uv = uv[np.all(np.isfinite(uv), axis=1)]
-        if len(uv) == 0:
-            continue
-        R = np.asarray(Pose(poses.rotvec[i], poses.translation[i]).R)
-        t = np.asarray(poses.translation[i])
-        board_plane = LaserPlane(R[:, 2] / np.dot(R[:, 2], t))
-        X = np.asarray(_laser_points_safe(camera, board_plane, jnp.asarray(uv)))
-        pts.append(X)
-    if not pts:
+        px = np.asarray(view.stripe_px, dtype=np.float64).reshape(-1, 2)
+        px = px[np.all(np.isfinite(px), axis=1)]
+        n = R[i, :, 2] / np.dot(R[i, :, 2], t[i])
+        uv.append(px)
+        normals.append(np.broadcast_to(n, px.shape[:1] + (3,)))
+    uv, normals = np.concatenate(uv), np.concatenate(normals)
+    if len(uv) == 0:
         raise ValueError("no stripe pixels on any board view: cannot calibrate the laser plane")
-    return np.concatenate(pts)
+    X = _onto_planes(camera, jnp.asarray(_pad_pow2(normals)), jnp.asarray(_pad_pow2(uv)))
+    return np.asarray(X)[: len(uv)]
 
 
 def fit_plane_tls(points: np.ndarray) -> LaserPlane:
@@ -246,62 +273,394 @@ def fit_laser_plane(camera, poses: Pose, obs: Observations) -> PlaneFit:
 
 
 @dataclasses.dataclass(frozen=True)
+class StageInit:
+    """Closed-form start of the stage calibration (see [`initial_stage`][]).
+
+    **Fields:**
+    - `stage`: the table axis as a gauge-fixed `RotaryStage` (`t_m_c = (d, 0, 0)`).
+    - `eccentricity_mm`: the gauge axis's offset from the table axis (measurement frame).
+    - `rms_mm`: RMS in-plane distance of the gauge points from the fitted sections.
+    - `sense_from_data`: whether the table's turning sense (the sign of `z_m`) came from
+      the eccentric motion of the gauge; False: the convention (`z_m` towards image up).
+    """
+
+    stage: RotaryStage
+    eccentricity_mm: np.ndarray
+    rms_mm: float
+    sense_from_data: bool
+
+
+@dataclasses.dataclass(frozen=True)
 class StageCalibration:
+    """Rotary-stage calibration from a gauge scan (paper §2.4 step 4).
+
+    **Fields:**
+    - `stage`: `R_m_c`, `t_m_c` (gauge-fixed: `t_m_c = (d, 0, 0)`) and Δω.
+    - `eccentricity_mm`: the gauge axis's offset from the table axis, measurement frame.
+    - `fit`: the Levenberg–Marquardt solve.
+    - `radius_rms_mm`: RMS in-plane distance of the gauge points from the gauge's section
+      by the laser plane (the residual of `gauge_residuals`, in mm).
+    - `initial`: the closed-form start ([`StageInit`][]).
+    """
+
     stage: RotaryStage
     eccentricity_mm: np.ndarray
     fit: Fit
     radius_rms_mm: float
+    initial: StageInit | None = None
 
 
-def _fit_cylinder_axis(points: np.ndarray, radius: float):
-    """Axis (point, direction) of a cylinder of known radius through points (grid + LS)."""
-    c = points.mean(axis=0)
-    P = points - c
-    best = None
-    # directions on a hemisphere
-    for el in np.linspace(0.0, np.pi / 2, 19):
-        for az in np.linspace(0.0, 2 * np.pi, max(1, int(72 * np.sin(el)) + 1), endpoint=False):
-            d = np.array([np.cos(az) * np.sin(el), np.sin(az) * np.sin(el), np.cos(el)])
-            a = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
-            a /= np.linalg.norm(a)
-            b = np.cross(d, a)
-            x, y = P @ a, P @ b
-            # Kasa circle fit
-            A = np.stack([x, y, np.ones_like(x)], 1)
-            rhs = x**2 + y**2
-            sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
-            cx, cy = sol[0] / 2, sol[1] / 2
-            rr = np.sqrt(max(sol[2] + cx**2 + cy**2, 0.0))
-            resid = np.sqrt(np.mean((np.hypot(x - cx, y - cy) - rr) ** 2))
-            score = resid + abs(rr - radius) * 0.01
-            if best is None or score < best[0]:
-                best = (score, c + cx * a + cy * b, d)
-    return best[1], best[2]
+# Backprojection onto the laser plane, compiled once per (padded) number of pixels.
+_laser_points_jit = eqx.filter_jit(_laser_points_safe)
 
 
-def initial_stage(camera, plane, obs: Observations):
-    """Table axis from a cylinder fit to the gauge points of all frames (camera frame)."""
-    pts = []
-    for f in obs.stage.frames:
-        uv = np.asarray(f).reshape(-1, 2)
-        uv = uv[np.all(np.isfinite(uv), axis=1)]
-        if len(uv):
-            pts.append(np.asarray(_laser_points_safe(camera, plane, jnp.asarray(uv))))
-    if not pts:
+def _gauge_points(camera, plane: LaserPlane, frames) -> tuple[np.ndarray, np.ndarray]:
+    """All frames' stripe pixels → laser-plane points `(N, 3)` and frame indices `(N,)`,
+    in ONE compiled call (pixels concatenated and padded to a power of two)."""
+    uv, idx = [], []
+    for i, f in enumerate(frames):
+        f = np.asarray(f, dtype=np.float64).reshape(-1, 2)
+        f = f[np.all(np.isfinite(f), axis=1)]
+        uv.append(f)
+        idx.append(np.full(len(f), i))
+    uv, idx = np.concatenate(uv), np.concatenate(idx)
+    n = len(uv)
+    if n == 0:
         raise ValueError("the stage scan holds no stripe pixels")
-    pts = np.concatenate(pts)
-    p, d = _fit_cylinder_axis(pts, obs.stage.gauge_radius_mm)
-    # measurement frame: z_m along the axis (towards image "up", −y_c), origin at the
-    # foot of the perpendicular from the camera, x_m towards the camera
-    if d @ np.array([0.0, -1.0, 0.0]) < 0:
-        d = -d
-    origin = p - (p @ d) * d
-    if np.linalg.norm(origin) < 1e-6:
+    m = max(256, 1 << (n - 1).bit_length())
+    pad = np.concatenate([uv, np.repeat(uv[:1], m - n, axis=0)])
+    X = np.asarray(_laser_points_jit(camera, plane, jnp.asarray(pad)))[:n]
+    ok = np.all(np.isfinite(X), axis=1)
+    return X[ok], idx[ok]
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _perp_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors a, b with (a, b, d) right-handed, for directions `d` `(D, 3)`."""
+    h = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = _unit_rows(np.cross(d, h))
+    return a, np.cross(d, a)
+
+
+def _direction_grid(normal: np.ndarray, step: float, min_elevation: float) -> np.ndarray:
+    """Directions `d` with `d · n̂ ≥ sin(min_elevation)`, about `step` rad apart (a
+    hemisphere of axis directions about the laser normal; ±d are the same axis)."""
+    u, v = _perp_basis(normal[None])
+    u, v = u[0], v[0]
+    out = []
+    for el in np.arange(min_elevation, np.pi / 2 + 1e-9, step):
+        k = max(1, int(round(2 * np.pi * np.cos(el) / step)))
+        az = (np.arange(k) + 0.5 * (len(out) % 2)) * 2 * np.pi / k
+        ring = np.cos(az)[:, None] * u + np.sin(az)[:, None] * v
+        out.append(np.cos(el) * ring + np.sin(el) * normal)
+    return np.concatenate(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Sections:
+    """Gauge points grouped by frame, for the section fits (NumPy, camera frame).
+
+    `P` `(N, 3)`: the points minus their mean `mean`, sorted by frame; `starts` `(K,)`:
+    where each of the K frames with points begins in `P`; `seg` `(N,)`: the group of each
+    point (0 … K−1); `frames` `(K,)`: the frame indices i of the groups; `normal`: unit
+    laser-plane normal; `radius`: the gauge radius (mm).
+    """
+
+    P: np.ndarray
+    mean: np.ndarray
+    starts: np.ndarray
+    seg: np.ndarray
+    frames: np.ndarray
+    normal: np.ndarray
+    radius: float
+
+    @classmethod
+    def of(cls, X, frame, normal, radius) -> _Sections:
+        order = np.argsort(frame, kind="stable")
+        X, frame = np.asarray(X, dtype=np.float64)[order], np.asarray(frame)[order]
+        frames, starts, seg = np.unique(frame, return_index=True, return_inverse=True)
+        mean = X.mean(axis=0)
+        normal = np.asarray(normal, dtype=np.float64)
+        return cls(X - mean, mean, starts, seg, frames, normal / np.linalg.norm(normal), radius)
+
+    def subsample(self, per_frame: int) -> _Sections:
+        """At most `per_frame` points per frame, evenly along each arc."""
+        ends = np.append(self.starts[1:], len(self.P))
+        keep = np.concatenate(
+            [
+                np.unique(np.linspace(s, e - 1, min(e - s, per_frame)).round().astype(int))
+                for s, e in zip(self.starts, ends)
+            ]
+        )
+        return _Sections(
+            self.P[keep], self.mean, np.searchsorted(keep, self.starts), self.seg[keep],
+            self.frames, self.normal, self.radius,
+        )  # fmt: skip
+
+
+def _section_fits(sec: _Sections, dirs: np.ndarray, iterations: int = 5):
+    """For each candidate axis direction, a circle of the known radius per frame.
+
+    The gauge points of frame i lie on a cylinder of radius r: projected along the true
+    axis direction they lie on a circle of radius r (its centre moves from frame to frame
+    with the eccentricity). For each direction `d` `(D, 3)` the points are projected onto
+    the plane ⟂ d and a circle of radius r is fitted to each frame (Kåsa start, then
+    Gauss–Newton on the centre). A point's residual, its distance from the cylinder along
+    the surface normal, is divided by that normal's length within the laser plane
+    (√(1 − (ρ̂·n̂)²)): the distance *within the laser plane*, where the pixel noise acts.
+    The plain 3-D distance would favour cylinders nearly tangent to the laser plane,
+    which come within a fraction of a micrometre of a whole band of the plane.
+
+    Per-frame sums use `np.add.reduceat` (no BLAS threads: fast on a busy machine).
+
+    **Returns:** `(score, resid, centres, H, (a, b))`: `score` `(D,)` the mean squared
+    in-plane residual (mm²; inf where most of the lit surface would face away from the
+    camera or a fit failed), `resid` `(D, N)` the in-plane residuals, the centres `(D, K,
+    2)` in the basis `a, b` of each direction (about `sec.mean`), and their normal
+    matrices `H` `(D, K, 2, 2)`.
+    """
+    P, seg, r = sec.P, sec.seg, sec.radius
+
+    def ssum(v):  # (D, N) → per-frame sums (D, K)
+        return np.add.reduceat(v, sec.starts, axis=1)
+
+    def dot(u, V):  # (D, 3), (N, 3) → (D, N), without BLAS
+        return u[:, :1] * V[:, 0] + u[:, 1:2] * V[:, 1] + u[:, 2:] * V[:, 2]
+
+    a, b = _perp_basis(dirs)
+    x, y = dot(a, P), dot(b, P)  # (D, N)
+    cnt = np.diff(np.append(sec.starts, len(P)))
+    # Kåsa fit per frame, in coordinates centred on the frame's centroid
+    mx, my = ssum(x) / cnt, ssum(y) / cnt  # (D, K)
+    xc, yc = x - mx[:, seg], y - my[:, seg]
+    z = xc**2 + yc**2
+    sxx, sxy, syy = ssum(xc * xc), ssum(xc * yc), ssum(yc * yc)
+    sxz, syz = ssum(xc * z), ssum(yc * z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = sxx * syy - sxy**2
+        kx = (syy * sxz - sxy * syz) / det
+        ky = (sxx * syz - sxy * sxz) / det
+        k = np.hypot(kx, ky)
+        # the circle of radius r through the arc, on the side of the Kåsa centre
+        cx, cy = mx + r * kx / k, my + r * ky / k
+    ok = np.isfinite(cx) & np.isfinite(cy)
+    cx, cy = np.where(ok, cx, mx), np.where(ok, cy, my)
+    an, bn = (a @ sec.normal)[:, None], (b @ sec.normal)[:, None]
+    for it in range(iterations + 1):
+        dx, dy = x - cx[:, seg], y - cy[:, seg]
+        rho = np.hypot(dx, dy)
+        ux, uy = dx / rho, dy / rho
+        res = rho - r
+        w = 1.0 / np.maximum(1.0 - (ux * an + uy * bn) ** 2, 1e-12)
+        wx, wy = w * ux, w * uy
+        hxx, hxy, hyy = ssum(wx * ux), ssum(wx * uy), ssum(wy * uy)
+        if it == iterations:
+            break
+        gx, gy = ssum(wx * res), ssum(wy * res)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            det = hxx * hyy - hxy**2
+            sx, sy = (hyy * gx - hxy * gy) / det, (hxx * gy - hxy * gx) / det
+        good = np.isfinite(sx) & np.isfinite(sy)
+        cx, cy = cx + np.where(good, sx, 0.0), cy + np.where(good, sy, 0.0)
+    resid = np.sqrt(w) * res
+    score = np.mean(resid**2, axis=1)
+    # the lit surface faces the camera (at −mean): outward normal towards it
+    cam = -sec.mean - P  # (N, 3)
+    facing = np.mean(ux * dot(a, cam) + uy * dot(b, cam) > 0, axis=1)
+    valid = (facing > 0.5) & np.all(ok, axis=1) & np.isfinite(score)
+    score = np.where(valid, score, np.inf)
+    centres = np.stack([cx, cy], axis=-1)
+    H = np.stack([np.stack([hxx, hxy], -1), np.stack([hxy, hyy], -1)], -2)
+    return score, resid, centres, H, (a, b)
+
+
+def _refine_direction(sec: _Sections, d: np.ndarray, *, tol: float, max_iter: int = 50):
+    """Levenberg–Marquardt on the axis direction alone (the per-frame circle centres are
+    solved for each direction: variable projection), finite-difference Jacobian."""
+    h = 1e-6
+    score, res = _section_fits(sec, d[None])[:2]
+    cost, res = float(score[0]), res[0]
+    lam = 1e-3
+    for _ in range(max_iter):
+        a, b = _perp_basis(d[None])
+        trial = _unit_rows(np.stack([d + h * a[0], d + h * b[0]]))
+        J = (_section_fits(sec, trial)[1] - res).T / h  # (N, 2)
+        JtJ, g = J.T @ J, J.T @ res
+        while True:
+            step = -np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ)), g)
+            new = _unit_rows(d + step[0] * a[0] + step[1] * b[0])
+            s_new, r_new = _section_fits(sec, new[None])[:2]
+            if float(s_new[0]) <= cost:
+                d, cost, res = new, float(s_new[0]), r_new[0]
+                lam = max(lam / 5.0, 1e-9)
+                break
+            lam *= 8.0
+            if lam > 1e8:
+                return d, cost
+        if np.hypot(*step) < tol:
+            break
+    return d, cost
+
+
+def _fit_cylinder_axis(
+    sec: _Sections,
+    *,
+    coarse_step: float = math.radians(4.0),
+    min_elevation: float = math.radians(2.0),
+    candidates: int = 2,
+    tol: float = 1e-7,
+):
+    """The axis direction of a cylinder of known radius from its sections by one plane.
+
+    The points (`sec`, camera frame) lie on the laser plane and on the cylinder, which may
+    move from frame to frame (an eccentric gauge on a turning table) but keeps its
+    direction. A coarse grid of directions (`coarse_step` apart, at least `min_elevation`
+    out of the plane; a subsample of the points) scores every direction by the in-plane
+    residual of per-frame fixed-radius circle fits ([`_section_fits`][]), vectorised over
+    directions; the best `candidates` separated minima are refined on all points
+    ([`_refine_direction`][], to `tol` rad).
+
+    **Returns:** `(direction, score)`, the unit direction with `direction · n̂ > 0` and
+    its mean squared in-plane residual (mm²).
+    """
+    coarse = sec.subsample(12)
+    dirs = _direction_grid(sec.normal, coarse_step, min_elevation)
+    score = np.concatenate(
+        [_section_fits(coarse, dirs[k : k + 256], 3)[0] for k in range(0, len(dirs), 256)]
+    )
+    picked = []
+    for j in np.argsort(score):
+        if not np.isfinite(score[j]) or len(picked) == candidates:
+            break
+        if all(abs(dirs[j] @ dirs[p]) < math.cos(3 * coarse_step) for p in picked):
+            picked.append(j)
+    if not picked:
+        raise ValueError(
+            "no cylinder of the gauge radius fits the scan with its lit side facing the "
+            "camera: check the gauge radius, the laser plane and the camera"
+        )
+    best = min((_refine_direction(sec, dirs[j], tol=tol) for j in picked), key=lambda t: t[1])
+    d = best[0] if best[0] @ sec.normal > 0 else -best[0]
+    return d, best[1]
+
+
+def _straight_line_ms(sec: _Sections) -> float:
+    """Mean squared distance of the points from a straight line fitted to each frame."""
+    P = sec.P
+    cnt = np.diff(np.append(sec.starts, len(P)))
+    m = np.add.reduceat(P, sec.starts, axis=0) / cnt[:, None]  # (K, 3) frame centroids
+    outer = np.add.reduceat(P[:, :, None] * P[:, None, :], sec.starts, axis=0)
+    cov = outer / cnt[:, None, None] - m[:, :, None] * m[:, None, :]
+    ev = np.linalg.eigvalsh(cov)  # ascending: off the plane, across the line, along it
+    return float(np.sum(cnt * (ev[:, 0] + ev[:, 1])) / len(P))
+
+
+def _usable_gauge_points(X, frame, radius, min_points=5):
+    """The points of frames with `min_points` or more; `ValueError` if too few remain."""
+    if not (radius > 0 and np.isfinite(radius)):
+        raise ValueError(f"the gauge radius must be positive, got {radius}")
+    n_per = np.bincount(frame)
+    keep = n_per[frame] >= min_points
+    if np.count_nonzero(keep) < 2 * min_points:
+        raise ValueError(
+            f"the stage scan holds too few stripe points ({len(X)}; need frames with "
+            f"{min_points} or more, {2 * min_points} in all) to fit the gauge"
+        )
+    return X[keep], frame[keep]
+
+
+def _stage_from_sections(sec: _Sections, d: np.ndarray, delta_omega: float):
+    """Table axis and eccentricity from the per-frame section circles along `d`.
+
+    Along the table axis z_m (= ±d), frame i's gauge centre sits at c + rot(−i Δω) e:
+    the eccentric gauge circles the table axis against the table's turn. Both senses of
+    z_m are tried; the one that fits the centres' motion wins when it fits clearly
+    better (an eccentric gauge), else z_m points towards image up (−y_c).
+    """
+    score, _, centres, H, (a, b) = _section_fits(sec, d[None])
+    centres, H, a, b = centres[0], H[0], a[0], b[0]
+    # whitened rows Lᵀ (c_f − c − R_f e), H_f = L Lᵀ
+    eps = 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(2)
+    L = np.linalg.cholesky(H + eps)
+    ang = -sec.frames * delta_omega
+    Rf = np.stack(
+        [np.stack([np.cos(ang), -np.sin(ang)], -1), np.stack([np.sin(ang), np.cos(ang)], -1)], -2
+    )  # (K, 2, 2)
+    fits = {}
+    for sense in (1.0, -1.0):
+        # coordinates in the basis (a, s b) of z_m = s d: (c_a, s c_b), H → F H F
+        F = np.diag([1.0, sense])
+        Lt = np.swapaxes(F @ L, 1, 2)
+        A = np.concatenate([Lt, Lt @ Rf], axis=2).reshape(-1, 4)
+        rhs = np.einsum("kij,kj->ki", Lt, centres @ F).reshape(-1)
+        if len(sec.frames) >= 3:
+            sol = np.linalg.lstsq(A, rhs, rcond=1e-12)[0]
+        else:  # too few frames for the eccentricity
+            sol = np.append(np.linalg.lstsq(A[:, :2], rhs, rcond=1e-12)[0], [0.0, 0.0])
+        fits[sense] = (float(np.sum((A @ sol - rhs) ** 2)), sol)
+    ss = {s: f[0] for s, f in fits.items()}
+    from_data = min(ss.values()) < 0.25 * max(ss.values())
+    if from_data:
+        sense = min(ss, key=ss.get)
+    else:
+        sense = 1.0 if d @ np.array([0.0, -1.0, 0.0]) >= 0 else -1.0
+    sol = fits[sense][1]
+    z, bb = sense * d, sense * b
+    p = sec.mean + sol[0] * a + sol[1] * bb  # a point on the table axis
+    e3 = sol[2] * a + sol[3] * bb
+    # measurement frame: origin at the foot of the perpendicular from the camera, x_m
+    # towards the camera (the gauge fixing of `gauge_residuals`: t_m_c = (d, 0, 0))
+    origin = p - (p @ z) * z
+    dist = float(np.linalg.norm(origin))
+    if dist < 1e-6:
         raise ValueError("the table axis passes through the camera: degenerate stage scan")
-    x_m = -origin / np.linalg.norm(origin)
-    y_m = np.cross(d, x_m)
-    R_c_m = np.stack([x_m, y_m, d], axis=1)
-    return RotaryStage(R_c_m.T, -R_c_m.T @ origin, math.radians(obs.stage.delta_omega_deg))
+    x_m = -origin / dist
+    R_m_c = np.stack([x_m, np.cross(z, x_m), z])
+    stage = RotaryStage(R_m_c, np.array([dist, 0.0, 0.0]), delta_omega)
+    ecc = np.array([e3 @ R_m_c[0], e3 @ R_m_c[1]])
+    return stage, ecc, float(np.sqrt(score[0])), bool(from_data)
+
+
+def initial_stage(camera, plane: LaserPlane, obs: Observations) -> StageInit:
+    """Closed-form start for the stage calibration: table axis and gauge eccentricity.
+
+    The stripe pixels of all frames are back-projected onto the laser plane (one compiled
+    call). The table axis direction is searched over a hemisphere about the laser normal
+    (coarse grid, then Levenberg–Marquardt on the direction): along the right direction
+    every frame's points project onto a circle of the gauge radius, with the lit side
+    facing the camera ([`_section_fits`][]). The per-frame circle centres then give the
+    axis position, the eccentricity (the gauge circles the table axis as it turns) and
+    the turning sense.
+
+    **Returns:** a [`StageInit`][]. Raises `ValueError` for a scan that cannot determine
+    the axis (too few points, a straight stripe, no fitting cylinder facing the camera).
+    """
+    if obs.stage is None:
+        raise ValueError('the observations hold no rotary-stage scan ("stage")')
+    radius = float(obs.stage.gauge_radius_mm)
+    X, frame = _gauge_points(camera, plane, obs.stage.frames)
+    X, frame = _usable_gauge_points(X, frame, radius)
+    sec = _Sections.of(X, frame, np.asarray(plane.n, dtype=np.float64), radius)
+    min_elevation = math.radians(2.0)
+    d, score = _fit_cylinder_axis(sec, min_elevation=min_elevation)
+    # The axis comes from the stripe's curvature: it must stand out of the noise, i.e. a
+    # straight line per frame must fit far worse than the sections.
+    line_ms = _straight_line_ms(sec)
+    if d @ sec.normal < math.sin(min_elevation) or line_ms < 100.0 * score:
+        raise ValueError(
+            "the gauge scan does not determine the table axis: the stripe is straight "
+            f"(RMS {1e3 * math.sqrt(line_ms):.3g} µm from a straight line per frame, "
+            f"{1e3 * math.sqrt(score):.3g} µm from the fitted cylinder; the best axis "
+            f"lies {math.degrees(math.asin(min(1.0, abs(d @ sec.normal)))):.3g}° out of "
+            "the laser plane). Tilt the table axis out of the laser plane."
+        )
+    stage, ecc, rms, from_data = _stage_from_sections(
+        sec, d, math.radians(obs.stage.delta_omega_deg)
+    )
+    return StageInit(stage, ecc, rms, from_data)
 
 
 def calibrate_stage(
@@ -313,13 +672,22 @@ def calibrate_stage(
     max_steps: int = 200,
     throw: bool = True,
 ) -> StageCalibration:
-    """Paper §2.4 step 4: R_m_c, t_m_c (and the gauge eccentricity) from a gauge scan."""
+    """Paper §2.4 step 4: R_m_c, t_m_c (and the gauge eccentricity) from a gauge scan.
+
+    Starts from [`initial_stage`][] and refines the table axis and the eccentricity by
+    Levenberg–Marquardt on `gauge_residuals` (camera, laser plane and Δω held fixed).
+    """
     if obs.stage is None:
         raise ValueError('the observations hold no rotary-stage scan ("stage")')
-    stage = initial_stage(camera, plane, obs)
+    init = initial_stage(camera, plane, obs)
+    if not obs.views:  # the stage block needs no boards; make_data wants one view
+        from ..io._observations import View
+
+        blank = View(np.full((len(obs.board_points_mm), 2), np.nan), np.zeros((0, 2)))
+        obs = dataclasses.replace(obs, views=[blank])
     data = make_data(obs, sigma_stripe_mm=sigma_stripe_mm)
     poses = Pose(jnp.zeros((1, 3)), jnp.zeros((1, 3)))
-    params = SystemParams(camera, poses, plane, stage, jnp.zeros(2))
+    params = SystemParams(camera, poses, plane, init.stage, jnp.asarray(init.eccentricity_mm))
     fit = least_squares(
         gauge_residuals,
         params,
@@ -328,10 +696,14 @@ def calibrate_stage(
         max_steps=max_steps,
         throw=throw,
     )
-    r = np.asarray(gauge_residuals(fit.params, data)) * sigma_stripe_mm
+    r = np.asarray(_gauge_residuals_jit(fit.params, data)) * sigma_stripe_mm
     n = float(np.sum(np.asarray(data.gauge_w)))
     return StageCalibration(
-        fit.params.stage, np.asarray(fit.params.eccentricity), fit, float(np.sqrt(np.sum(r**2) / n))
+        fit.params.stage,
+        np.asarray(fit.params.eccentricity),
+        fit,
+        float(np.sqrt(np.sum(r**2) / n)),
+        init,
     )
 
 
@@ -375,13 +747,13 @@ class Calibration:
 
 
 def _plane_rms(params, data) -> float:
-    r = np.asarray(stripe_residuals(params, data)) * float(data.sigma_stripe_mm)
+    r = np.asarray(_stripe_residuals_jit(params, data)) * float(data.sigma_stripe_mm)
     n = float(np.sum(np.asarray(data.stripe_w)))
     return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))
 
 
 def _gauge_rms(params, data) -> float:
-    r = np.asarray(gauge_residuals(params, data)) * float(data.sigma_stripe_mm)
+    r = np.asarray(_gauge_residuals_jit(params, data)) * float(data.sigma_stripe_mm)
     n = float(np.sum(np.asarray(data.gauge_w)))
     return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))
 
@@ -465,10 +837,14 @@ def calibrate(
     )
 
 
+@eqx.filter_jit
+def _directions(camera, uv):
+    return camera.backproject(uv).direction
+
+
 def pixel_footprint_mm(camera, poses: Pose, obs: Observations) -> float:
     """Size (mm) of one pixel at the boards' distance, at the sensor centre."""
-    c = jnp.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
-    r0 = camera.backproject(c).direction
-    r1 = camera.backproject(c + jnp.array([1.0, 0.0])).direction
+    c = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
+    r0, r1 = _directions(camera, jnp.asarray(np.stack([c, c + [1.0, 0.0]])))
     angle = float(jnp.linalg.norm(jnp.cross(r0, r1)))
     return angle * float(np.median(np.linalg.norm(np.asarray(poses.translation), axis=1)))

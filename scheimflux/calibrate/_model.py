@@ -151,13 +151,27 @@ def stripe_residuals(params: SystemParams, data: CalibrationData) -> Float[Array
 
 
 def gauge_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
-    """Deviation (mm / σ) of reconstructed gauge points from the known radius."""
+    """Distance (mm / σ), within the laser plane, of each reconstructed gauge point from
+    the gauge's section by the plane.
+
+    A radial error δr of a point on the cylinder is a displacement of δr / sin β along
+    the stripe's normal in the laser plane, β the angle between the gauge's surface
+    normal and the plane's normal: that is the direction the stripe pixels' noise moves
+    the points, so σ (the in-plane stripe noise) weights it correctly. (Measured in 3-D
+    instead, a cylinder nearly tangent to the laser plane fits any stripe in the plane
+    to a fraction of a µm: a false minimum.)
+    """
+    n_c = params.plane.n / jnp.linalg.norm(params.plane.n)
 
     def one_frame(uv, w, i):
         X_c = _laser_points_safe(params.camera, params.plane, uv)
         X_m = jax.vmap(params.stage.to_measurement, in_axes=(0, None))(X_c, i)
-        r = jnp.linalg.norm(X_m[:, :2] - params.eccentricity, axis=-1)
-        return (r - data.gauge_radius) * w
+        d = X_m[:, :2] - params.eccentricity
+        r = jnp.linalg.norm(d, axis=-1)
+        n_m = params.stage.frame_rotation(i) @ (params.stage.R_m_c @ n_c)
+        cos = (d @ n_m[:2]) / r
+        sin = jnp.sqrt(jnp.maximum(1.0 - cos**2, 1e-6))
+        return (r - data.gauge_radius) / sin * w
 
     r = jax.vmap(one_frame)(data.gauge, data.gauge_w, data.frame_index)
     r = _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
