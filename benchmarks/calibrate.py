@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from scheimflux.calibrate import calibrate
+from scheimflux.calibrate import calibrate, calibrate_camera
 from scheimflux.calibrate._compare import opencv_calibrate, opencv_plane_rms_um
 from scheimflux.reconstruct._reconstruct import stripe_to_camera, stripe_to_measurement
 from scheimflux.simulate import paper_rig, simulate_observations
@@ -88,6 +88,18 @@ def _timed_calibrate(obs, **kw):
     cal = calibrate(obs, **kw)
     second = time.perf_counter() - t0
     return cal, first, second
+
+
+def _timed_camera(obs, repeats):
+    t0 = time.perf_counter()
+    calibrate_camera(obs)
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        cam = calibrate_camera(obs)
+        times.append(time.perf_counter() - t0)
+    return cam, first, sorted(times)[len(times) // 2]
 
 
 def _flag(ok: bool) -> str:
@@ -157,6 +169,19 @@ def main(argv=None) -> None:
             )
         )
     sub = dataclasses.replace(obs, stage=None)
+    # The same job as cv2.calibrateCamera: the camera from the corners alone.
+    cam, first, cam_time = _timed_camera(sub, repeats)
+    rows.append(
+        dict(
+            name="scheimflux thick+dist camera only",
+            rms=cam.reprojection_rms_px,
+            plane=math.nan,
+            dist=math.nan,
+            radius=math.nan,
+            time=cam_time,
+            compile=first - cam_time,
+        )
+    )
     cv_rows = {}
     for name, tilted in (("OpenCV plain", False), ("OpenCV TILTED", True)):
         res = opencv_calibrate(sub, tilted=tilted, repeats=repeats)
@@ -210,8 +235,13 @@ def main(argv=None) -> None:
         f"{_flag(abs(main_row['radius']) <= 0.5)}"
     )
     print(
-        f"  ≥ 5× faster than OpenCV TILTED after compilation: {main_row['time']:.3f} s vs "
-        f"{tilted_t:.3f} s ({speed:.2f}×)  {_flag(speed >= 5)}"
+        f"  ≥ 5× faster than OpenCV TILTED after compilation (camera from the same "
+        f"corners): {cam_time:.3f} s vs {tilted_t:.3f} s ({tilted_t / cam_time:.1f}×)  "
+        f"{_flag(tilted_t / cam_time >= 5)}"
+    )
+    print(
+        f"  the whole joint calibration (camera, plane, stage) vs OpenCV TILTED's camera "
+        f"alone: {main_row['time']:.3f} s ({speed:.1f}×)  {_flag(speed >= 5)}"
     )
 
 
