@@ -123,6 +123,14 @@ def _initial(obs, model, init):
     return cam, poses, "closed-form"
 
 
+def _default_distortion(model: str, distortion: str | None) -> str:
+    """The most accurate default: radial-tangential for the thick lens; the pinhole
+    (paper eq. 14) has none."""
+    if distortion is not None:
+        return distortion
+    return "radial-tangential" if model == "thick-lens" else "none"
+
+
 def calibrate_camera(
     obs: Observations,
     *,
@@ -151,8 +159,7 @@ def calibrate_camera(
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     _check_observations(obs)
-    if distortion is None:
-        distortion = "radial-tangential" if model == "thick-lens" else "none"
+    distortion = _default_distortion(model, distortion)
     dist = make_distortion(distortion)
     if model == "pinhole" and distortion != "none":
         raise ValueError(
@@ -327,9 +334,7 @@ def _gauge_points(camera, plane: LaserPlane, frames) -> tuple[np.ndarray, np.nda
     n = len(uv)
     if n == 0:
         raise ValueError("the stage scan holds no stripe pixels")
-    m = max(256, 1 << (n - 1).bit_length())
-    pad = np.concatenate([uv, np.repeat(uv[:1], m - n, axis=0)])
-    X = np.asarray(_laser_points_jit(camera, plane, jnp.asarray(pad)))[:n]
+    X = np.asarray(_laser_points_jit(camera, plane, jnp.asarray(_pad_pow2(uv))))[:n]
     ok = np.all(np.isfinite(X), axis=1)
     return X[ok], idx[ok]
 
@@ -696,13 +701,11 @@ def calibrate_stage(
         max_steps=max_steps,
         throw=throw,
     )
-    r = np.asarray(_gauge_residuals_jit(fit.params, data)) * sigma_stripe_mm
-    n = float(np.sum(np.asarray(data.gauge_w)))
     return StageCalibration(
         fit.params.stage,
         np.asarray(fit.params.eccentricity),
         fit,
-        float(np.sqrt(np.sum(r**2) / n)),
+        _gauge_rms(fit.params, data),
         init,
     )
 
@@ -781,8 +784,7 @@ def calibrate(
     `sigma_corner_px`, stripe and gauge points by `sigma_stripe_px` converted to mm at
     the camera's pixel footprint.
     """
-    if distortion is None:
-        distortion = "radial-tangential" if model == "thick-lens" else "none"
+    distortion = _default_distortion(model, distortion)
     cam_cal = calibrate_camera(
         obs,
         model=model,
