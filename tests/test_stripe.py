@@ -253,7 +253,7 @@ def test_result_container():
     "image, message",
     [
         (np.zeros(100), "2-D"),
-        (np.zeros((50, 60, 3), np.uint8), "grey"),
+        (np.zeros((50, 60, 2), np.uint8), "colour"),
         (np.zeros((0, 0)), "too small"),
         (np.zeros((50, 4)), "too small"),
         (np.array([["a", "b"], ["c", "d"]]), "dtype"),

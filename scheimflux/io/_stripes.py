@@ -1,12 +1,16 @@
 """STRIPES.json: laser-stripe centres per frame.
 
 ```json
-{"format": "scheimflux.stripes/1", "frames": [[[u, v], ...], ...]}
+{"format": "scheimflux.stripes/1", "frames": [[[u, v], ...], ...],
+ "confidence": [[c, ...], ...]}
 ```
 
 One list of `[u, v]` pixel centres per frame, in frame order (pixel (0, 0) is the centre
 of the top-left pixel). Invalid points are left out; a frame without a stripe (or one
 that could not be read) is an empty list so that indices stay aligned with the images.
+The optional `"confidence"` holds, per frame, one number in [0, 1] per centre (the
+extractor's `StripeResult.confidence`); files without it (older ones, or simulated
+centres) read as NaN confidences, and readers that ignore it see the same file as before.
 """
 
 from __future__ import annotations
@@ -38,7 +42,11 @@ def _frame_array(points: Any, index: int) -> np.ndarray:
 
 
 def write_stripes(
-    path: str | os.PathLike, frames: Sequence[Any], *, overwrite: bool = False
+    path: str | os.PathLike,
+    frames: Sequence[Any],
+    *,
+    overwrite: bool = False,
+    confidence: Sequence[Any] | None = None,
 ) -> None:
     """Write stripe centres to a STRIPES.json file, atomically.
 
@@ -48,6 +56,9 @@ def write_stripes(
       object with `valid_uv`). Rows containing NaN (invalid points) are left out;
       infinite values are an error.
     - `overwrite`: replace an existing file; otherwise an existing file is an error.
+    - `confidence`: optional per frame an (N_i,) array of confidences in [0, 1], one per
+      row of the frame's points. Default: taken from `StripeResult`-like frames (their
+      `valid_confidence`); none are written when no frame carries any.
 
     The file is written to a temporary file in the same folder and moved into place, so a
     crash never leaves a half-written file.
@@ -56,22 +67,45 @@ def write_stripes(
     for points of the wrong shape or infinite values.
     """
     path = os.fspath(path)
-    out = []
+    frames = list(frames)
+    if confidence is not None and len(confidence) != len(frames):
+        raise ValueError(f"confidence has {len(confidence)} frames, points {len(frames)}")
+    out, conf_out, any_conf = [], [], False
     for i, frame in enumerate(frames):
         arr = _frame_array(getattr(frame, "valid_uv", frame), i)
-        arr = arr[~np.isnan(arr).any(axis=1)]
+        if confidence is not None:
+            conf = np.asarray(confidence[i], dtype=np.float64).reshape(-1)
+        elif hasattr(frame, "valid_confidence"):
+            conf = np.asarray(frame.valid_confidence, dtype=np.float64).reshape(-1)
+        else:
+            conf = None
+        if conf is not None:
+            any_conf = True
+            if conf.shape != (len(arr),):
+                raise ValueError(f"frame {i}: {conf.size} confidences for {len(arr)} points")
+            if not np.all((conf >= 0) & (conf <= 1)):
+                raise ValueError(f"frame {i}: confidences must lie in [0, 1]")
+        keep = ~np.isnan(arr).any(axis=1)
+        arr = arr[keep]
         if not np.isfinite(arr).all():
             raise ValueError(f"frame {i}: points contain infinite values")
         out.append([[float(u), float(v)] for u, v in arr])
-    write_atomic(
-        path,
-        json.dumps({"format": FORMAT, "frames": out}, separators=(",", ":")) + "\n",
-        overwrite=overwrite,
-    )
+        conf_out.append(
+            [] if conf is None else [round(float(c), 4) for c in conf[keep]]
+        )
+    doc: dict[str, Any] = {"format": FORMAT, "frames": out}
+    if any_conf:
+        doc["confidence"] = conf_out
+    write_atomic(path, json.dumps(doc, separators=(",", ":")) + "\n", overwrite=overwrite)
 
 
-def read_stripes(path: str | os.PathLike) -> list[np.ndarray]:
+def read_stripes(
+    path: str | os.PathLike, *, confidence: bool = False
+) -> list[np.ndarray] | tuple[list[np.ndarray], list[np.ndarray]]:
     """Read a STRIPES.json file: one (N_i, 2) float64 array of `(u, v)` per frame.
+
+    With `confidence=True` returns `(frames, confidences)`: also one (N_i,) float64
+    array per frame, NaN where the file holds no confidence for that frame.
 
     **Raises:** `FileNotFoundError` if missing; `ValueError` with the reason for a file
     that is not valid JSON, has another `format`, lacks `"frames"`, or holds points of
@@ -102,4 +136,24 @@ def read_stripes(path: str | os.PathLike) -> list[np.ndarray]:
         if not all(math.isfinite(x) for x in arr.ravel()):
             raise ValueError(f"{path}: frame {i} contains non-finite numbers")
         result.append(arr)
-    return result
+    if not confidence:
+        return result
+    conf = data.get("confidence")
+    if conf is not None and (not isinstance(conf, list) or len(conf) != len(frames)):
+        raise ValueError(f"{path}: 'confidence' must be a list with one entry per frame")
+    confs = []
+    for i, arr in enumerate(result):
+        c = [] if conf is None else conf[i]
+        if not isinstance(c, list) or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in c
+        ):
+            raise ValueError(f"{path}: confidence of frame {i} must be a list of numbers")
+        if len(c) == 0:
+            confs.append(np.full(len(arr), np.nan))
+        elif len(c) != len(arr):
+            raise ValueError(
+                f"{path}: frame {i} has {len(arr)} points but {len(c)} confidences"
+            )
+        else:
+            confs.append(np.asarray(c, dtype=np.float64))
+    return result, confs

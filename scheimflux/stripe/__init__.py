@@ -4,5 +4,7 @@ NumPy/OpenCV only: never called inside traced JAX code.
 """
 
 from ._extract import extract_stripe as extract_stripe, extract_stripes as extract_stripes
+from ._image import CHANNELS as CHANNELS
 from ._kernels import steger_sigma as steger_sigma
+from ._mask import region_mask as region_mask
 from ._result import StripeResult as StripeResult

@@ -13,6 +13,8 @@ import math
 import cv2
 import numpy as np
 
+from ._ridge import ridge_response
+
 #: Downsampling factor of the coarse image along both axes.
 FACTOR = 4
 # Scan lines of the coarse image over which the median track is taken (odd).
@@ -75,6 +77,7 @@ def coarse_track(
     width_px: float,
     integer_input: bool,
     pixel_noise: float,
+    mask_small: np.ndarray | None = None,
 ) -> CoarseTrack:
     """Locate the stripe in the downsampled scan-frame image `small`.
 
@@ -84,21 +87,24 @@ def coarse_track(
     - `width_px`: expected stripe FWHM (px).
     - `integer_input`: whether the image held integer grey levels (rounding noise).
     - `pixel_noise`: the image's noise standard deviation (grey levels).
+    - `mask_small`: optional bool mask in the same frame as `small` (coarse pixels that
+      are mostly inside the region of interest).
     """
     hs, ws = small.shape
     d = max(1, int(round(width_px / FACTOR)))
-    kernel = np.zeros((2 * d + 1, 1), np.float32)
-    kernel[0, 0] = kernel[-1, 0] = -0.5
-    kernel[d, 0] = 1.0
-    ridge = cv2.filter2D(small, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE)
+    # Two-sided ridge response (a step edge gives none), zero outside the mask.
+    ridge = ridge_response(small, d, 0)
+    if mask_small is not None:
+        ridge = np.where(mask_small, ridge, 0.0).astype(np.float32)
 
     idx = cv2.reduceArgMax(ridge, 0).reshape(-1).astype(np.intp)
     cols = np.arange(ws)
     resp = ridge[idx, cols]
 
-    # Noise of the ridge response on 4 x 4 block means: sqrt(1.5) / 4 = 0.306 times the
-    # pixel noise, plus the rounding of integer block means.
-    ridge_noise = math.hypot(0.306 * pixel_noise, 0.35 if integer_input else 0.0)
+    # Noise of one difference of 4 x 4 block means: sqrt(2) / 4 = 0.354 times the pixel
+    # noise, plus the rounding of integer block means (the minimum of two such
+    # differences has about the same spread).
+    ridge_noise = math.hypot(0.354 * pixel_noise, 0.35 if integer_input else 0.0)
     threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.ptp(small)), 1e-30))
     ok = resp > threshold
 

@@ -12,9 +12,13 @@ import cv2
 import numpy as np
 
 from ._centroid import centroid_band
-from ._coarse import FACTOR, coarse_track, dominant_scan, downsample
-from ._image import as_grey_image, estimate_noise
+from ._channel import pick_channel
+from ._coarse import FACTOR, coarse_track, downsample
+from ._image import CHANNELS, as_image, channel_image, estimate_noise
+from ._link import link_segments
+from ._mask import as_mask
 from ._result import StripeResult
+from ._ridge import is_ambiguous, scan_direction
 from ._steger import ScanLines, steger_band, steger_full
 
 _METHODS = ("steger", "centroid")
@@ -22,7 +26,17 @@ _ORIENTATIONS = ("auto", "vertical-scan", "horizontal-scan")
 _DEFAULT_WIDTH = 5.0
 
 
-def _empty(n: int, orientation: str, method: str) -> StripeResult:
+# A profile whose two flanks one smoothed-profile std from the centre differ by more
+# than this fraction of its height has a brightness step under it (an albedo edge, the
+# rim of a glint), which pulls the centre: rejected. A symmetric line gives 0 plus noise.
+ASYMMETRY_MAX = 0.12
+# Accepted range of a centre's width over the median width of the line.
+WIDTH_RATIO = (0.7, 1.4)
+# Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
+_HIGH = 2.0
+
+
+def _empty(n: int, orientation: str, method: str, **extra) -> StripeResult:
     return StripeResult(
         uv=np.full((n, 2), np.nan),
         strength=np.zeros(n),
@@ -31,14 +45,19 @@ def _empty(n: int, orientation: str, method: str) -> StripeResult:
         saturated=np.zeros(n, bool),
         orientation=orientation,
         method=method,
+        confidence=np.zeros(n),
+        segment=np.full(n, -1, np.intp),
+        **extra,
     )
 
 
-def _check_options(method, width_px, orientation, band_px, min_strength, saturation):
+def _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel):
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
     if orientation not in _ORIENTATIONS:
         raise ValueError(f"orientation must be one of {_ORIENTATIONS}, got {orientation!r}")
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {CHANNELS}, got {channel!r}")
     if width_px is not None and not (math.isfinite(width_px) and 1.0 <= width_px <= 200.0):
         raise ValueError(f"width_px must be a stripe FWHM between 1 and 200 px, got {width_px}")
     if band_px is not None and band_px != "auto":
@@ -50,6 +69,27 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
         raise ValueError(f"saturation must be a finite grey level or None, got {saturation}")
 
 
+def _signal(image, background, channel, width):
+    """The 2-D signal image, the plain image whose clipping marks saturation, and the
+    channel used."""
+    img = as_image(image)
+    if background is not None:
+        off = as_image(background, name="background")
+        if off.shape != img.shape:
+            raise ValueError(
+                f"background (laser-off) image has shape {off.shape}, the image {img.shape}"
+            )
+    if channel == "auto":
+        probe = img if background is None else img.astype(np.float32) - off.astype(np.float32)
+        channel = pick_channel(probe, width)
+    elif img.ndim == 2 and channel != "grey":
+        raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
+    sig, sat = channel_image(img, channel)
+    if background is not None:
+        sig = sig.astype(np.float32) - channel_image(off, channel)[0].astype(np.float32)
+    return sig, sat, channel
+
+
 def extract_stripe(
     image: Any,
     *,
@@ -59,73 +99,110 @@ def extract_stripe(
     band_px: int | str | None = "auto",
     min_strength: float | int | None = None,
     saturation: float | int | None = None,
+    mask: Any = None,
+    channel: str = "auto",
+    background: Any = None,
+    max_jump_px: float | None = None,
+    min_segment: int | None = None,
 ) -> StripeResult:
-    """Sub-pixel centres of the laser stripe in one grey image, one per scan line.
+    """Sub-pixel centres of a bright laser line in one image, at most one per scan line.
 
-    Coarse step: the image is averaged over 4 x 4 blocks, a ridge filter picks the peak
-    in each scan line, and peaks that disagree with the median of their neighbours are
-    searched again near it (so a weaker second reflection, or a brighter one in a few
-    scan lines, is not taken). Fine step: Steger's Hessian method in a band around the
-    coarse track (or in the whole frame), or the grey-gravity centroid.
+    Pipeline: (1) the signal image: the chosen channel of a colour image (or a
+    combination such as red minus the others), minus the laser-off `background` if
+    given; (2) a 4 x 4 block average; its two-sided ridge response (bright on both sides,
+    so step edges give none) chooses the scan direction (`"auto"`) and positions a
+    coarse track, one peak per scan line, with outliers from the median of their
+    neighbours searched again near it; (3) Steger's Hessian method (or the grey
+    centroid) in a band around the track; (4) per-centre ridge tests: a negative second
+    derivative across the line of at least the noise threshold, the first derivative's
+    zero inside the band, a plausible width and a symmetric profile (a brightness step
+    under the line, such as a checker edge, pulls the centre and is refused); (5)
+    linking into segments (largest jump `max_jump_px` per scan line), hysteresis on the
+    strength and removal of short segments.
 
     **Arguments:**
-    - `image`: (H, W) grey image: uint8, uint16 (12- or 16-bit data), int16 or float.
+    - `image`: grey (H, W) or colour (H, W, 3|4) image, colour in **BGR** order as
+      `cv2.imread` returns it (alpha ignored); uint8, uint16, int16 or float.
     - `method`: `"steger"` (Hessian line detector, sub-pixel) or `"centroid"`
       (background-subtracted grey gravity, the classical baseline).
-    - `width_px`: expected stripe width, full width at half maximum in pixels. Steger
-      smooths with `sigma = width_px / (2 sqrt(3))`. `None`: measured from the image
-      (one extra pass when it differs much from 5 px).
-    - `orientation`: `"vertical-scan"` (one centre per column u: for a mostly
-      horizontal stripe), `"horizontal-scan"` (one per row v: a mostly vertical
-      stripe), or `"auto"` (from the image's dominant gradient direction).
-    - `band_px`: half-height of the band around the coarse track in which Steger's
-      derivatives are computed; `"auto"` sizes it from `width_px`; `None` filters the whole
-      frame (slow baseline, same centres).
-    - `min_strength`: smallest accepted strength (see `StripeResult.strength`), in the
-      image's grey levels; `None`: eight times the strength's noise, estimated from the
-      image.
-    - `saturation`: grey level at which the sensor clips. `None`: for integer images the
-      frame's maximum (it only matters where a plateau of it sits on the stripe). Where
-      the stripe is clipped, Steger is rerun with a scale matched to the plateau so that
-      it finds the plateau's centre; those points are flagged `saturated`.
+    - `width_px`: expected line width (FWHM, px); `None`: measured from the image.
+    - `orientation`: `"vertical-scan"` (one centre per column u: a mostly horizontal
+      line), `"horizontal-scan"` (one per row v), or `"auto"` (from the ridge-normal
+      tensor of the image; `StripeResult.ambiguous` tells when no direction dominates).
+    - `band_px`: half-height of the band around the coarse track for Steger; `"auto"`:
+      from `width_px`; `None`: filter the whole frame (slow baseline, same centres).
+    - `min_strength`: smallest accepted strength (grey levels of the signal); `None`:
+      eight times the strength's noise, estimated from the image.
+    - `saturation`: level at which the sensor clips; `None`: for integer images the
+      frame's maximum. Clipped line cores are measured from the plateau (`saturated`).
+    - `mask`: region of interest: None, a bool (H, W) array, or a polygon (N, 2) of
+      `(u, v)` pixels. Only ridges inside it are tracked and centres outside it are not
+      returned (see `region_mask`).
+    - `channel`: `"auto"`, `"grey"`, `"red"`, `"green"`, `"blue"`, `"red-minus-others"`,
+      `"green-minus-others"` or `"blue-minus-others"` (`X - (Y + Z) / 2`). Grey images
+      take `"auto"` or `"grey"`.
+    - `background`: optional laser-off image of the same pose (same shape); the centres
+      are found in the difference image.
+    - `max_jump_px`: largest change of the centre between neighbouring scan lines within
+      a segment; `None`: `max(2, width / 2)`.
+    - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
 
     **Returns:** a `StripeResult` with one entry per scan line (W for a vertical scan,
-    H for a horizontal one).
+    H for a horizontal one); a frame without a line gives all-invalid entries.
 
-    **Raises:** `ValueError` for input that is not a numeric 2-D image or bad options.
+    **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
+    mask or background of the wrong shape, or bad options.
     """
-    _check_options(method, width_px, orientation, band_px, min_strength, saturation)
-    img = as_grey_image(image)
+    _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
+    width = _DEFAULT_WIDTH if width_px is None else float(width_px)
+    img, sat_img, channel = _signal(image, background, channel, width)
+    roi = as_mask(mask, img.shape)
     small = downsample(img)
+    mask_small = None
+    if roi is not None:
+        mask_small = downsample(roi.astype(np.float32)) > 0.5
+    d = max(1, int(round(width / FACTOR)))
+    integer = bool(np.issubdtype(img.dtype, np.integer))
+    noise = estimate_noise(img)
+    floor = 4.0 * math.hypot(0.354 * noise, 0.35 if integer else 0.0)
+    auto_dir, angle, coherence = scan_direction(small, d, mask_small, floor)
+    ambiguous = is_ambiguous(coherence)
     if orientation == "auto":
-        orientation = dominant_scan(small)
+        orientation = auto_dir
+    extra = dict(channel=channel, ambiguous=ambiguous, normal_angle_deg=angle)
     flat = img.reshape(-1)
+    flat_sat = sat_img.reshape(-1)
     if orientation == "vertical-scan":
         shape = img.shape
         stride_y, stride_x = img.shape[1], 1
     else:
         shape = img.shape[::-1]
         small = np.ascontiguousarray(small.T)
+        if mask_small is not None:
+            mask_small = np.ascontiguousarray(mask_small.T)
         stride_y, stride_x = 1, img.shape[1]
 
-    def gather(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    def gather(rows: np.ndarray, cols: np.ndarray, source=flat) -> np.ndarray:
         """The scan-frame image at integer (row, column) index arrays (broadcast)."""
-        return np.take(flat, rows * stride_y + cols * stride_x)
+        return np.take(source, rows * stride_y + cols * stride_x)
 
-    integer = bool(np.issubdtype(img.dtype, np.integer))
-    width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    noise = estimate_noise(img)
     coarse = coarse_track(
-        small, shape[0], shape[1], width_px=width, integer_input=integer, pixel_noise=noise
+        small,
+        shape[0],
+        shape[1],
+        width_px=width,
+        integer_input=integer,
+        pixel_noise=noise,
+        mask_small=mask_small,
     )
     if not coarse.found:
-        return _empty(shape[1], orientation, method)
+        return _empty(shape[1], orientation, method, **extra)
 
     sat_level = saturation
-    if sat_level is None and integer:
-        sat_level = float(img.max())
+    if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
+        sat_level = float(sat_img.max())
 
-    def run(w: float) -> tuple[ScanLines, np.ndarray]:
+    def run(w: float) -> tuple[ScanLines, np.ndarray, float]:
         if method == "centroid":
             lines = centroid_band(gather, shape, coarse.centre, w)
             noise_level = 6.0 * noise
@@ -139,46 +216,76 @@ def extract_stripe(
             sigma = max(w / (2.0 * math.sqrt(3.0)), 0.7)
             # Std of sigma² G''*noise for white noise is sqrt(3 / (16 pi)) noise / sigma.
             noise_level = 8.0 * 0.2443 * noise / sigma
-        thr = noise_level if min_strength is None else float(min_strength)
+        thr = max(noise_level if min_strength is None else float(min_strength), 1e-12)
         y = lines.y
-        valid = lines.found & coarse.support & (lines.strength >= max(thr, 1e-12))
+        valid = lines.found & coarse.support & (lines.strength >= thr)
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
         valid &= (y >= -0.5) & (y <= shape[0] - 0.5)
-        return lines, valid
+        if lines.asym is not None:
+            valid &= np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= ASYMMETRY_MAX
+        return lines, valid, thr
 
-    lines, valid = run(width)
+    lines, valid, thr = run(width)
     if width_px is None and valid.sum() >= 8:
         measured = float(np.nanmedian(lines.width[valid & np.isfinite(lines.width)]))
         if math.isfinite(measured) and abs(measured - width) > 0.3 * width:
             width = min(max(measured, 1.5), 100.0)
-            lines, valid = run(width)
+            lines, valid, thr = run(width)
 
     saturated = np.zeros(shape[1], bool)
     if sat_level is not None and valid.any():
         cols = np.arange(shape[1])
         row = np.clip(lines.row.astype(np.intp), 0, shape[0] - 1)
-        near = gather(np.clip(row[None, :] + np.arange(-1, 2)[:, None], 0, shape[0] - 1), cols)
+        near_rows = np.clip(row[None, :] + np.arange(-1, 2)[:, None], 0, shape[0] - 1)
+        near = gather(near_rows, cols, flat_sat)
         saturated = valid & (np.count_nonzero(near >= sat_level, axis=0) >= 2)
         if method == "steger" and saturated.any():
             reach = int(math.ceil(4 * width)) + FACTOR
             rows = np.clip(row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1)
-            plateau = np.count_nonzero(gather(rows, cols) >= sat_level, axis=0)
+            plateau = np.count_nonzero(gather(rows, cols, flat_sat) >= sat_level, axis=0)
             wide = float(np.median(plateau[saturated])) + width
-            lines2, valid2 = run(wide)
+            lines2, valid2, _ = run(wide)
             lines = ScanLines(
                 y=np.where(saturated, lines2.y, lines.y),
                 strength=np.where(saturated, lines2.strength, lines.strength),
                 width=np.where(saturated, lines2.width, lines.width),
                 found=np.where(saturated, lines2.found, lines.found),
                 row=lines.row,
+                asym=None if lines.asym is None else np.where(saturated, lines2.asym, lines.asym),
             )
             valid = np.where(saturated, valid2, valid)
             saturated &= valid
 
+    # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
+    # field changes it by a few per cent); a profile much narrower or wider than the
+    # line's median is a distorted one (a step under it, a glint beside it).
+    widths = lines.width[valid & ~saturated & np.isfinite(lines.width)]
+    if widths.size >= 8 and method == "steger":
+        med = float(np.median(widths))
+        wv = np.nan_to_num(lines.width, nan=0.0)
+        valid &= saturated | ((wv >= WIDTH_RATIO[0] * med) & (wv <= WIDTH_RATIO[1] * med))
+
     x = np.arange(shape[1], dtype=np.float64)
+    y = np.where(valid, lines.y, np.nan)
+    if roi is not None and valid.any():
+        u_, v_ = (x, y) if orientation == "vertical-scan" else (y, x)
+        iu = np.clip(np.rint(np.nan_to_num(u_)).astype(np.intp), 0, img.shape[1] - 1)
+        iv = np.clip(np.rint(np.nan_to_num(v_)).astype(np.intp), 0, img.shape[0] - 1)
+        valid &= roi[iv, iu]
+    jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
+    min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    segment, valid = link_segments(
+        y, valid, lines.strength, max_jump_px=jump, max_gap=2, min_points=min_pts,
+        high=_HIGH * thr,
+    )
+    saturated &= valid
     y = np.where(valid, lines.y, np.nan)
     x = np.where(valid, x, np.nan)
     uv = np.stack([x, y], axis=1) if orientation == "vertical-scan" else np.stack([y, x], axis=1)
+    asym = np.zeros(shape[1]) if lines.asym is None else np.nan_to_num(lines.asym, nan=1.0)
+    confidence = np.clip(lines.strength / (4.0 * thr), 0.0, 1.0) * np.clip(
+        1.0 - np.abs(asym) / ASYMMETRY_MAX, 0.0, 1.0
+    )
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),
@@ -187,6 +294,9 @@ def extract_stripe(
         saturated=saturated,
         orientation=orientation,
         method=method,
+        confidence=np.where(valid, confidence, 0.0),
+        segment=segment,
+        **extra,
     )
 
 

@@ -54,3 +54,74 @@ def estimate_noise(img: np.ndarray, *, n_rows: int = 8) -> float:
     if np.issubdtype(img.dtype, np.integer):
         return max(sigma, 0.3)
     return max(sigma, 1e-9 * max(float(np.abs(img).max()), 1e-30))
+
+
+CHANNELS = (
+    "auto",
+    "grey",
+    "red",
+    "green",
+    "blue",
+    "red-minus-others",
+    "green-minus-others",
+    "blue-minus-others",
+)
+_BGR_INDEX = {"blue": 0, "green": 1, "red": 2}
+_GREY_WEIGHTS = (0.114, 0.587, 0.299)  # B, G, R (ITU-R BT.601, as cv2.cvtColor)
+
+
+def as_image(image: Any, *, name: str = "image") -> np.ndarray:
+    """`image` as a grey (H, W) or BGR colour (H, W, 3) array (an alpha channel is
+    dropped); the same checks as `as_grey_image` otherwise."""
+    try:
+        arr = np.asarray(image)
+    except Exception as err:
+        raise ValueError(f"{name} could not be converted to an array: {err}") from None
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        if arr.dtype == np.bool_ or not (
+            np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
+        ):
+            raise ValueError(f"{name} must hold integer or float levels, got dtype {arr.dtype}")
+        if arr.shape[0] < 8 or arr.shape[1] < 8:
+            raise ValueError(f"{name} is too small ({arr.shape}); at least 8 x 8 pixels are needed")
+        arr = arr[:, :, :3]
+        if arr.dtype.type not in _SUPPORTED:
+            arr = arr.astype(np.float32 if np.issubdtype(arr.dtype, np.integer) else np.float64)
+        if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
+            raise ValueError(f"{name} contains NaN or infinite values")
+        return np.ascontiguousarray(arr)
+    if arr.ndim == 3 and arr.shape[2] != 1:
+        raise ValueError(
+            f"{name} must be grey (H, W) or colour (H, W, 3|4) BGR, got shape {arr.shape}"
+        )
+    return as_grey_image(arr, name=name)
+
+
+def channel_image(img: np.ndarray, channel: str) -> tuple[np.ndarray, np.ndarray]:
+    """The signal image for `channel` (not "auto") and the plain channel whose clipping
+    marks saturation.
+
+    For a grey image every channel name except the colour ones gives the image itself.
+    `"X-minus-others"` is `X - (Y + Z) / 2` (float32): white light and grey targets
+    cancel in it and a laser of colour X remains.
+    """
+    if img.ndim == 2:
+        if channel not in ("grey", "auto"):
+            raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
+        return img, img
+    if channel == "grey":
+        b, g, r = (img[:, :, k].astype(np.float32) for k in range(3))
+        wb, wg, wr = _GREY_WEIGHTS
+        grey = wb * b + wg * g + wr * r
+        return grey, img.max(axis=2)
+    if channel in _BGR_INDEX:
+        plane = np.ascontiguousarray(img[:, :, _BGR_INDEX[channel]])
+        return plane, plane
+    base = channel.removesuffix("-minus-others")
+    k = _BGR_INDEX[base]
+    others = [j for j in range(3) if j != k]
+    plane = img[:, :, k]
+    signal = plane.astype(np.float32) - 0.5 * (
+        img[:, :, others[0]].astype(np.float32) + img[:, :, others[1]].astype(np.float32)
+    )
+    return np.ascontiguousarray(signal), np.ascontiguousarray(plane)

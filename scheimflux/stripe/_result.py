@@ -30,6 +30,17 @@ class StripeResult:
       (the centre is still measured, from the plateau).
     - `orientation`: `"vertical-scan"` or `"horizontal-scan"`, the scan actually used.
     - `method`: `"steger"` or `"centroid"`.
+    - `confidence`: shape (N,), in [0, 1]: the strength over four times the acceptance
+      threshold (capped at 1) times the profile's symmetry (1 for a symmetric profile,
+      0 at the asymmetry limit); 0 where invalid. Default: `valid` as 0/1.
+    - `segment`: shape (N,), int: the line segment a valid centre was linked into (-1
+      where invalid).
+    - `channel`: the channel (or combination) of a colour image that was used, `"grey"`
+      for grey images.
+    - `ambiguous`: True when the image showed no dominant line direction (several line
+      directions, blobs or no line), so `orientation="auto"` was a guess.
+    - `normal_angle_deg`: the dominant direction across the lines, degrees from the u
+      axis in [0, 180) (90: a horizontal line), from the ridge-normal tensor.
     """
 
     uv: np.ndarray
@@ -39,12 +50,21 @@ class StripeResult:
     saturated: np.ndarray
     orientation: str = "vertical-scan"
     method: str = "steger"
+    confidence: np.ndarray | None = None
+    segment: np.ndarray | None = None
+    channel: str = "grey"
+    ambiguous: bool = False
+    normal_angle_deg: float = float("nan")
 
     def __post_init__(self):
         n = self.uv.shape[0]
+        if self.confidence is None:
+            object.__setattr__(self, "confidence", np.asarray(self.valid, np.float64))
+        if self.segment is None:
+            object.__setattr__(self, "segment", np.where(self.valid, 0, -1).astype(np.intp))
         if self.uv.shape != (n, 2):
             raise ValueError(f"StripeResult.uv must have shape (N, 2), got {self.uv.shape}")
-        for name in ("strength", "width", "valid", "saturated"):
+        for name in ("strength", "width", "valid", "saturated", "confidence", "segment"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(
                     f"StripeResult.{name} must have shape ({n},), got {getattr(self, name).shape}"
@@ -54,6 +74,11 @@ class StripeResult:
     def valid_uv(self) -> np.ndarray:
         """The valid centres only, shape (M, 2), float64."""
         return self.uv[self.valid]
+
+    @property
+    def valid_confidence(self) -> np.ndarray:
+        """The confidence of the valid centres only, shape (M,), float64."""
+        return np.asarray(self.confidence, np.float64)[self.valid]
 
     def __len__(self) -> int:
         return self.uv.shape[0]

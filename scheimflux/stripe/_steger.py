@@ -47,6 +47,8 @@ class ScanLines:
     width: np.ndarray  # FWHM estimate (NaN if none)
     found: np.ndarray  # a line point was found
     row: np.ndarray  # integer row of the chosen line point
+    asym: np.ndarray | None = None  # profile asymmetry (see `_asymmetry`), NaN if none
+    ny: np.ndarray | None = None  # scan-line component of the line normal
 
 
 def _derivative_images(img: np.ndarray, sigma: float) -> list[np.ndarray]:
@@ -161,7 +163,36 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
     width = FWHM_PER_SIGMA * np.sqrt(np.clip(s2 - sigma * sigma, 0.0, None))
     width = np.where(found & (s2 > 0), width, np.nan)
     y = np.where(found, y, np.nan)
-    return ScanLines(y, strength.astype(np.float64), width.astype(np.float64), found, rowk)
+    lines = ScanLines(y, strength.astype(np.float64), width.astype(np.float64), found, rowk)
+    return lines, bg, grad_y, nyk
+
+
+def _asymmetry(sample, lines: ScanLines, bg, grad_y, ny, s_total: float, reach: int):
+    """Asymmetry of the smoothed profile about the found centre, per scan line:
+    `(r(y + δ) - r(y - δ) - 2 δ g) / (r(y) - bg)` with `δ` one standard deviation of
+    the smoothed profile along the scan line (`s_total / |n_y|`, at most `reach` rows),
+    `g` the background slope along the scan line and `bg` the background level. A
+    profile symmetric about its centre gives 0 (plus noise); a brightness step inside
+    the profile (an albedo edge under the line), which also pulls the centre, does not.
+    `sample(rows, cols)` reads the smoothed image at integer rows (clipped to the data).
+    """
+    n = lines.y.size
+    cols = np.arange(n)
+    ok = lines.found & np.isfinite(lines.y)
+    y = np.where(ok, lines.y, lines.row)
+    delta = np.minimum(s_total / np.maximum(np.abs(ny), 0.2), float(reach))
+
+    def at(pos):
+        lo = np.floor(pos)
+        f = pos - lo
+        lo = lo.astype(np.intp)
+        return (1 - f) * sample(lo, cols) + f * sample(lo + 1, cols)
+
+    centre = at(y)
+    plus, minus = at(y + delta), at(y - delta)
+    height = centre - bg
+    asym = (plus - minus - 2.0 * delta * grad_y) / np.where(height > 0, height, np.inf)
+    return dataclasses.replace(lines, asym=np.where(ok & (height > 0), asym, np.nan), ny=ny)
 
 
 def _geometry(width_px: float, band_px: int | None):
@@ -194,9 +225,17 @@ def steger_full(img: np.ndarray, width_px: float, track, tolerance: float) -> Sc
     rows = np.clip(best[None, :] + np.arange(-1, 2)[:, None], 0, h - 1)
     win = [a[rows, cols] for a in d]
     bg_rows = np.clip(best[None, :] + np.array([-bg_off, bg_off])[:, None], 0, h - 1)
-    res = _evaluate(win, rows, _select(win, 1, 2), d[0][bg_rows, cols], bg_off, sigma)
+    res, bg, grad_y, ny = _evaluate(
+        win, rows, _select(win, 1, 2), d[0][bg_rows, cols], bg_off, sigma
+    )
     found = res.found & np.isfinite(score[best, cols])
-    return dataclasses.replace(res, found=found, y=np.where(found, res.y, np.nan))
+    res = dataclasses.replace(res, found=found, y=np.where(found, res.y, np.nan))
+    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
+
+    def sample(r, c):
+        return d[0][np.clip(r, 0, h - 1), c]
+
+    return _asymmetry(sample, res, bg, grad_y, ny, s_total, bg_off)
 
 
 def steger_band(
@@ -207,7 +246,6 @@ def steger_band(
     `gather(rows, cols)` returns the scan-frame image at integer index arrays (so that a
     horizontal scan needs no transposed copy of the image). `band_px=None` picks the
     smallest band that holds the search window and the background samples.
-    sample)` where the sample is the raw band (for saturation checks).
     """
     sigma, r, bg_off, margin = _geometry(width_px, band_px)
     if band_px is None:
@@ -247,4 +285,12 @@ def steger_band(
     best_row = rows[selection[0], cols]
     bg_crow = best_row[None, :] + np.array([-bg_off, bg_off])[:, None] - top[tile][None, :]
     bg2 = np.take(smooth, bg_crow * comp.shape[1] + ccol)
-    return _evaluate(win, rows, selection, bg2, bg_off, sigma)
+    res, bg, grad_y, ny = _evaluate(win, rows, selection, bg2, bg_off, sigma)
+    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
+    top_c = top[tile]
+
+    def sample(rr, cc):
+        crow_s = np.clip(rr - top_c, 0, comp.shape[0] - 1)
+        return np.take(smooth, crow_s * comp.shape[1] + ccol[cc])
+
+    return _asymmetry(sample, res, bg, grad_y, ny, s_total, bg_off)
