@@ -25,6 +25,14 @@ from ._render_board import (
     board_map as board_map,
     render_checkerboard as render_checkerboard,
 )
+from ._render_capture import (
+    CaptureTruth as CaptureTruth,
+    StripeScore as StripeScore,
+    board_view_capture as board_view_capture,
+    homography_map as homography_map,
+    render_capture as render_capture,
+    score_stripe as score_stripe,
+)
 from ._render_stripe import StripeTruth as StripeTruth, render_stripe as render_stripe
 from ._rig import (
     Rig as Rig,

@@ -307,7 +307,7 @@ def render_capture(
     glints: int = 0,
     blur_px: tuple[float, float] = (0.6, 0.6),
     read_noise: float = 0.003,
-    shot_noise: float = 0.0004,
+    shot_noise: float = 0.0001,
     bit_depth: int = 8,
     jpeg_quality: int | None = None,
     laser_on: bool = True,
@@ -338,7 +338,8 @@ def render_capture(
     - `glints`: number of specular glints (white spots and short streaks).
     - `blur_px`: Gaussian blur sigma at the top and at the bottom of the image (px),
       linear in between (the Scheimpflug focus varies across the field).
-    - `read_noise`, `shot_noise`: noise variance `read_noise² + shot_noise · E`
+    - `read_noise`, `shot_noise`: noise variance `read_noise² + shot_noise · E` (the
+      default 0.0001 is the shot noise of a 10 000 e⁻ full well)
       (fractions of full scale).
     - `bit_depth`: 8 (uint8) or 16 (uint16).
     - `jpeg_quality`: round-trip the 8-bit image through JPEG at this quality.

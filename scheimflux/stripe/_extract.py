@@ -15,7 +15,7 @@ from ._centroid import centroid_band
 from ._channel import pick_channel
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, as_image, channel_image, estimate_noise
-from ._link import link_segments
+from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, scan_direction
@@ -69,7 +69,7 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
         raise ValueError(f"saturation must be a finite grey level or None, got {saturation}")
 
 
-def _signal(image, background, channel, width):
+def _signal(image, background, channel, width, normalise):
     """The 2-D signal image, the plain image whose clipping marks saturation, and the
     channel used."""
     img = as_image(image)
@@ -86,8 +86,26 @@ def _signal(image, background, channel, width):
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
     if background is not None:
-        sig = sig.astype(np.float32) - channel_image(off, channel)[0].astype(np.float32)
+        base = channel_image(off, channel)[0].astype(np.float32)
+        sig = sig.astype(np.float32) - base
+        if normalise:
+            sig = _albedo_normalised(sig, base)
     return sig, sat, channel
+
+
+def _albedo_normalised(diff: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """`diff · typical / max(off, floor)`: the laser light over the ambient light of the
+    same pixel. Brightness is albedo x (ambient + laser), so the laser-on minus laser-off
+    difference still carries the target's albedo (the line is dimmer on black squares
+    and an albedo edge under it pulls its centre); dividing by the laser-off level takes
+    the albedo out. `typical` (the median laser-off level) keeps grey-level units;
+    `floor` (a tenth of the 90th percentile) keeps dark pixels from amplifying noise."""
+    smooth = cv2.GaussianBlur(off, (0, 0), 0.7)
+    typical = float(np.median(smooth))
+    floor = 0.1 * float(np.percentile(smooth, 90))
+    if not floor > 0:
+        return diff
+    return diff * (max(typical, floor) / np.maximum(smooth, floor))
 
 
 def extract_stripe(
@@ -102,6 +120,7 @@ def extract_stripe(
     mask: Any = None,
     channel: str = "auto",
     background: Any = None,
+    normalise_background: bool = True,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
 ) -> StripeResult:
@@ -143,6 +162,9 @@ def extract_stripe(
       take `"auto"` or `"grey"`.
     - `background`: optional laser-off image of the same pose (same shape); the centres
       are found in the difference image.
+    - `normalise_background`: with a `background`, divide the difference by the
+      laser-off level (albedo-free: the line keeps its brightness and its centre across
+      black and white squares); False: the plain difference.
     - `max_jump_px`: largest change of the centre between neighbouring scan lines within
       a segment; `None`: `max(2, width / 2)`.
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
@@ -155,7 +177,7 @@ def extract_stripe(
     """
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel = _signal(image, background, channel, width)
+    img, sat_img, channel = _signal(image, background, channel, width, normalise_background)
     roi = as_mask(mask, img.shape)
     small = downsample(img)
     mask_small = None
@@ -272,6 +294,7 @@ def extract_stripe(
         iu = np.clip(np.rint(np.nan_to_num(u_)).astype(np.intp), 0, img.shape[1] - 1)
         iv = np.clip(np.rint(np.nan_to_num(v_)).astype(np.intp), 0, img.shape[0] - 1)
         valid &= roi[iv, iu]
+    valid &= consistent(y, valid)
     jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
     min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
     segment, valid = link_segments(

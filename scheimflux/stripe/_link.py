@@ -52,3 +52,90 @@ def link_segments(
     keep = np.zeros(y.shape, bool)
     keep[idx[kept]] = True
     return labels, keep
+
+
+def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-out prediction of `y` at each scan line from a weighted quadratic fit
+    over the scan lines within ± `half`, and the number of points it used.
+
+    Windowed power sums come from prefix sums (O(N)); the local coordinate
+    `t = (x - i) / half` is expanded binomially from sums in `x / half`.
+    """
+    n = y.size
+    u = np.arange(n, dtype=np.float64) / half
+    yw = np.where(w > 0, y, 0.0) * w
+
+    lo = np.clip(np.arange(n) - half, 0, n)
+    hi = np.clip(np.arange(n) + half + 1, 0, n)
+
+    def windowed(a):
+        c = np.concatenate([[0.0], np.cumsum(a)])
+        return c[hi] - c[lo]
+
+    S = [windowed(w * u**k) for k in range(5)]
+    T = [windowed(yw * u**k) for k in range(3)]
+    c = -u  # t = u_j + c
+    binom = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1), (1, 4, 6, 4, 1))
+    St = [sum(binom[k][m] * c ** (k - m) * S[m] for m in range(k + 1)) for k in range(5)]
+    Tt = [sum(binom[k][m] * c ** (k - m) * T[m] for m in range(k + 1)) for k in range(3)]
+    # leave the point itself out (it sits at t = 0: only the zeroth sums hold it)
+    St[0] = St[0] - w
+    Tt[0] = Tt[0] - yw
+    # Prediction at t = 0: the first unknown of the 3 x 3 normal equations (Cramer).
+    s0, s1, s2, s3, s4 = St
+    t0, t1, t2 = Tt
+    c00 = s2 * s4 - s3 * s3
+    c01 = s1 * s4 - s2 * s3
+    c02 = s1 * s3 - s2 * s2
+    det = s0 * c00 - s1 * c01 + s2 * c02
+    num = t0 * c00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)
+    count = St[0]
+    good = (count >= 6) & (np.abs(det) > 1e-9 * np.maximum(s0, 1.0) ** 3)
+    pred = num / np.where(good, det, 1.0)
+    return np.where(good, pred, np.nan), np.where(good, count, 0.0)
+
+
+def consistent(
+    y: np.ndarray, valid: np.ndarray, *, half: int = 40, floor_px: float = 0.25
+) -> np.ndarray:
+    """Which valid centres agree with a smooth line through their neighbours.
+
+    A robust local quadratic (± `half` scan lines, leave-one-out, three passes with
+    shrinking thresholds `max(1, 3 s)`, `max(0.5, 4 s)`, `max(floor_px, 5 s)` where `s`
+    is the robust spread of the residuals) predicts each centre from the others; a
+    centre farther from it is refused. This removes runs that leave the line to follow
+    a checker edge (the laser's tail on a bright square makes a one-sided ridge along
+    the edge) and centres pulled by an albedo step under the line. Centres with fewer
+    than 6 neighbours in their window are kept (too few to judge) unless they also lie
+    off the robust global cubic of all centres (isolated glints, stray reflections).
+    """
+    keep = valid.copy()
+    if valid.sum() < 12:
+        return keep
+    yv = np.where(valid, y, 0.0)
+    # Seed: a global cubic, fitted robustly, down-weights gross runs off the line for
+    # the first local fit only (every centre is judged by the local fits).
+    x = np.flatnonzero(valid)
+    xs = (x - x.mean()) / max(float(np.ptp(x)), 1.0)
+    seed = np.ones(x.size, bool)
+    for _ in range(3):
+        coef = np.polyfit(xs[seed], y[x][seed], 3)
+        r = np.abs(y[x] - np.polyval(coef, xs))
+        seed = r <= max(1.0, 4.0 * 1.4826 * float(np.median(r[seed])))
+        if seed.sum() < 12:
+            seed[:] = True
+            break
+    off_curve = np.zeros(valid.shape, bool)
+    off_curve[x[~seed]] = True
+    keep &= ~off_curve
+    for factor, floor in ((3.0, 1.0), (4.0, 0.5), (5.0, floor_px)):
+        pred, count = _local_fit(yv, keep.astype(np.float64), half)
+        r = np.abs(yv - pred)
+        judged = valid & (count >= 6) & np.isfinite(r)
+        if not judged.any():
+            return keep & ~off_curve
+        spread = 1.4826 * float(np.median(r[judged & keep])) if (judged & keep).any() else 0.0
+        thr = max(floor, factor * spread)
+        # off the global curve and without neighbours to vouch for it: refused
+        keep = valid & ~(judged & (r > thr)) & ~(off_curve & ~judged)
+    return keep

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 # Coherence of the ridge-normal tensor below which the scan direction is ambiguous. A
@@ -67,6 +68,17 @@ def scan_direction(
     `"horizontal-scan"`, the angle of the dominant line normal from the u axis in
     [0, 180), and the tensor's coherence in [0, 1] (0 when there is no ridge at all).
     """
+    # One more 2 x 2 reduction: the direction needs no fine detail (4x cheaper).
+    h2, w2 = small.shape[0] // 2, small.shape[1] // 2
+    if min(h2, w2) >= 8:
+        small = cv2.resize(small[: 2 * h2, : 2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
+        if weight is not None:
+            weight = cv2.resize(
+                weight[: 2 * h2, : 2 * w2].astype(np.float32), (w2, h2),
+                interpolation=cv2.INTER_AREA,
+            )
+        d = max(1, int(round(d / 2)))
+        floor = floor / 2.0  # block-mean noise halves
     dd = max(1, int(round(d / math.sqrt(2.0))))
     responses = (
         (ridge_response(small, d, 0), (0.0, 1.0)),

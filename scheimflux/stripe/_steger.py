@@ -169,11 +169,13 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
 
 def _asymmetry(sample, lines: ScanLines, bg, grad_y, ny, s_total: float, reach: int):
     """Asymmetry of the smoothed profile about the found centre, per scan line:
-    `(r(y + δ) - r(y - δ) - 2 δ g) / (r(y) - bg)` with `δ` one standard deviation of
-    the smoothed profile along the scan line (`s_total / |n_y|`, at most `reach` rows),
-    `g` the background slope along the scan line and `bg` the background level. A
-    profile symmetric about its centre gives 0 (plus noise); a brightness step inside
-    the profile (an albedo edge under the line), which also pulls the centre, does not.
+    `(r(y + δ) - r(y - δ)) / (r(y) - bg)` with `δ` one standard deviation of the
+    smoothed profile along the scan line (`s_total / |n_y|`, at most `reach` rows) and
+    `bg` the background level. A profile symmetric about its centre gives 0 (plus
+    noise; a smooth background slope adds only `2 δ slope / height`); a brightness step
+    inside the profile (an albedo edge under the line), which also pulls the centre,
+    does not. (The background slope is deliberately not taken out: across a step it
+    would hide the step.)
     `sample(rows, cols)` reads the smoothed image at integer rows (clipped to the data).
     """
     n = lines.y.size
@@ -191,7 +193,7 @@ def _asymmetry(sample, lines: ScanLines, bg, grad_y, ny, s_total: float, reach: 
     centre = at(y)
     plus, minus = at(y + delta), at(y - delta)
     height = centre - bg
-    asym = (plus - minus - 2.0 * delta * grad_y) / np.where(height > 0, height, np.inf)
+    asym = (plus - minus) / np.where(height > 0, height, np.inf)
     return dataclasses.replace(lines, asym=np.where(ok & (height > 0), asym, np.nan), ny=ny)
 
 
