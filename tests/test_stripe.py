@@ -167,7 +167,9 @@ def test_gaps_are_invalid(method):
         inner = slice(start + 3, stop - 3) if stop - start > 6 else slice(start, start)
         assert not result.valid[inner].any()
         assert np.isnan(result.uv[inner]).all()
-    err, both, ok = errors(result, truth, margin=4)
+    # Each segment facing a gap loses its last ceil(2 sigma) = 3 centres (the filters'
+    # fading tail past the line's end) and the profile test may refuse one or two more.
+    err, both, ok = errors(result, truth, margin=6)
     assert both.sum() == ok.sum()
     assert np.abs(err).max() < 0.2
 

@@ -258,7 +258,7 @@ def _blur(img: np.ndarray, sigma: np.ndarray) -> np.ndarray:
 
 def _glints(shape, n, line_px, rng, keep_away_px):
     """Specular glints: (image of peak levels, centres). Half are round spots (sigma
-    0.8–2.5 px), half short streaks (3–12 px long); all at least `keep_away_px` from the
+    0.8–2.5 px), half short streaks (sigma 2–6 px along); all at least `keep_away_px` from the
     laser line, peaks 1.5–4 times full scale (they saturate)."""
     h, w = shape
     img = np.zeros(shape)
@@ -273,7 +273,7 @@ def _glints(shape, n, line_px, rng, keep_away_px):
         centres.append(c)
         streak = len(centres) % 2 == 0
         s_across = rng.uniform(0.8, 2.5) if not streak else rng.uniform(0.8, 1.5)
-        s_along = s_across if not streak else rng.uniform(3.0, 12.0)
+        s_along = s_across if not streak else rng.uniform(2.0, 6.0)
         ang = rng.uniform(0, math.pi)
         r = int(math.ceil(4 * max(s_across, s_along)))
         u0, v0 = int(round(c[0])), int(round(c[1]))

@@ -6,16 +6,17 @@ and per scan line the largest response above four times its noise is kept. The s
 is the sum of these maxima over the scan lines divided by the candidate's noise: a
 long, clear line scores high, glints (a few scan lines) and checker edges (no
 two-sided response) do not. White light and a grey target cancel in `X-minus-others`,
-so a coloured laser on a checkerboard wins there; a grey image is always `"grey"`.
+so a coloured laser on a checkerboard is taken from there (preferred over the plain
+colour down to half its score); a grey image is always `"grey"`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._coarse import FACTOR, downsample
+from ._coarse import downsample
 from ._image import channel_image, estimate_noise
-from ._ridge import ridge_response
+from ._ridge import ridge_offset, ridge_response
 
 CANDIDATES = (
     "grey",
@@ -31,7 +32,7 @@ CANDIDATES = (
 def _score(signal: np.ndarray, width_px: float, mask_small: np.ndarray | None) -> float:
     small = downsample(signal)
     noise = max(estimate_noise(signal), 0.3) * 0.354
-    d = max(1, int(round(width_px / FACTOR)))
+    d = ridge_offset(width_px)
     best = 0.0
     for axis in (0, 1):
         r = ridge_response(small, d, axis)
@@ -52,4 +53,11 @@ def pick_channel(
     if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 1], img[:, :, 2]):
         return "grey"
     scores = {c: _score(channel_image(img, c)[0], width_px, mask_small) for c in CANDIDATES}
-    return max(scores, key=scores.get)
+    best = max(scores, key=scores.get)
+    # A laser seen best in one plain colour is taken from that colour minus the others
+    # when it still scores half as well there: white light, grey targets, checker edges
+    # and white glints cancel in the combination, at sqrt(1.5) times the noise.
+    combined = f"{best}-minus-others"
+    if best in ("red", "green", "blue") and scores[combined] >= 0.5 * scores[best]:
+        return combined
+    return best

@@ -13,7 +13,7 @@ import math
 import cv2
 import numpy as np
 
-from ._ridge import ridge_response
+from ._ridge import ridge_offset, ridge_response
 
 #: Downsampling factor of the coarse image along both axes.
 FACTOR = 4
@@ -91,7 +91,7 @@ def coarse_track(
       are mostly inside the region of interest).
     """
     hs, ws = small.shape
-    d = max(1, int(round(width_px / FACTOR)))
+    d = ridge_offset(width_px)
     # Two-sided ridge response (a step edge gives none), zero outside the mask.
     ridge = ridge_response(small, d, 0)
     if mask_small is not None:

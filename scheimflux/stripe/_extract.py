@@ -18,7 +18,7 @@ from ._image import CHANNELS, as_image, channel_image, estimate_noise
 from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
-from ._ridge import is_ambiguous, scan_direction
+from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._steger import ScanLines, steger_band, steger_full
 
 _METHODS = ("steger", "centroid")
@@ -32,6 +32,9 @@ _DEFAULT_WIDTH = 5.0
 ASYMMETRY_MAX = 0.12
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
+# A frame holds a line only if one segment spans this fraction of the scan lines (or
+# three minimum segments): glints and short reflections alone are not a line.
+MIN_LINE_FRACTION = 0.05
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
 
@@ -86,10 +89,10 @@ def _signal(image, background, channel, width, normalise):
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
     if background is not None:
-        base = channel_image(off, channel)[0].astype(np.float32)
-        sig = sig.astype(np.float32) - base
-        if normalise:
-            sig = _albedo_normalised(sig, base)
+        base, level = channel_image(off, channel)
+        sig = sig.astype(np.float32) - base.astype(np.float32)
+        if normalise:  # the plain channel's laser-off level: albedo x ambient light
+            sig = _albedo_normalised(sig, level.astype(np.float32))
     return sig, sat, channel
 
 
@@ -183,7 +186,7 @@ def extract_stripe(
     mask_small = None
     if roi is not None:
         mask_small = downsample(roi.astype(np.float32)) > 0.5
-    d = max(1, int(round(width / FACTOR)))
+    d = ridge_offset(width)
     integer = bool(np.issubdtype(img.dtype, np.integer))
     noise = estimate_noise(img)
     floor = 4.0 * math.hypot(0.354 * noise, 0.35 if integer else 0.0)
@@ -247,20 +250,29 @@ def extract_stripe(
             valid &= np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= ASYMMETRY_MAX
         return lines, valid, thr
 
-    lines, valid, thr = run(width)
-    if width_px is None and valid.sum() >= 8:
-        measured = float(np.nanmedian(lines.width[valid & np.isfinite(lines.width)]))
-        if math.isfinite(measured) and abs(measured - width) > 0.3 * width:
-            width = min(max(measured, 1.5), 100.0)
-            lines, valid, thr = run(width)
-
-    saturated = np.zeros(shape[1], bool)
-    if sat_level is not None and valid.any():
-        cols = np.arange(shape[1])
+    def clipped(lines: ScanLines, valid: np.ndarray) -> np.ndarray:
+        """Valid centres with at least two clipped pixels among the three at the peak."""
+        if sat_level is None or not valid.any():
+            return np.zeros(shape[1], bool)
         row = np.clip(lines.row.astype(np.intp), 0, shape[0] - 1)
         near_rows = np.clip(row[None, :] + np.arange(-1, 2)[:, None], 0, shape[0] - 1)
-        near = gather(near_rows, cols, flat_sat)
-        saturated = valid & (np.count_nonzero(near >= sat_level, axis=0) >= 2)
+        near = gather(near_rows, np.arange(shape[1]), flat_sat)
+        return valid & (np.count_nonzero(near >= sat_level, axis=0) >= 2)
+
+    lines, valid, thr = run(width)
+    if width_px is None:
+        # the width of the unclipped part of the line (a clipped core looks wider)
+        plain = valid & ~clipped(lines, valid) & np.isfinite(lines.width)
+        if plain.sum() >= 8:
+            measured = float(np.median(lines.width[plain]))
+            if math.isfinite(measured) and abs(measured - width) > 0.3 * width:
+                width = min(max(measured, 1.5), 100.0)
+                lines, valid, thr = run(width)
+
+    saturated = clipped(lines, valid)
+    if saturated.any():
+        cols = np.arange(shape[1])
+        row = np.clip(lines.row.astype(np.intp), 0, shape[0] - 1)
         if method == "steger" and saturated.any():
             reach = int(math.ceil(4 * width)) + FACTOR
             rows = np.clip(row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1)
@@ -297,9 +309,17 @@ def extract_stripe(
     valid &= consistent(y, valid)
     jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
     min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    sigma_s = max(width / (2.0 * math.sqrt(3.0)), 0.7)
     segment, valid = link_segments(
-        y, valid, lines.strength, max_jump_px=jump, max_gap=2, min_points=min_pts,
+        y,
+        valid,
+        lines.strength,
+        max_jump_px=jump,
+        max_gap=2,
+        min_points=min_pts,
         high=_HIGH * thr,
+        trim=int(math.ceil(2.0 * sigma_s)),
+        min_line=max(3 * min_pts, int(MIN_LINE_FRACTION * shape[1])),
     )
     saturated &= valid
     y = np.where(valid, lines.y, np.nan)

@@ -21,6 +21,8 @@ def link_segments(
     max_gap: int,
     min_points: int,
     high: float,
+    trim: int = 0,
+    min_line: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Segment label per scan line (-1 where invalid or dropped) and the kept mask.
 
@@ -32,6 +34,9 @@ def link_segments(
     - `max_gap`: largest run of missing scan lines bridged within a segment.
     - `min_points`: fewest centres of a kept segment.
     - `high`: strength that at least one centre of a kept segment must reach.
+    - `trim`: centres dropped at each end of a segment (scan lines from its ends).
+    - `min_line`: if no segment spans this many scan lines, the frame holds no line
+      (glints and short reflections alone): nothing is kept.
     """
     idx = np.flatnonzero(valid)
     labels = np.full(y.shape, -1, np.intp)
@@ -47,7 +52,30 @@ def link_segments(
     peak = np.full(n_seg, -np.inf)
     np.maximum.at(peak, seg, strength[idx])
     keep_seg = (count >= min_points) & (peak >= high)
-    kept = keep_seg[seg]
+    # The smoothing kernels reach past the end of a line: its last `trim` centres come
+    # from the fading tail of the filters, not from the line. Drop them.
+    # Only ends that face a long gap (or the frame's first/last centre) are line ends;
+    # a short gap is a few refused centres inside the line.
+    if trim > 0:
+        first = np.flatnonzero(new)
+        last = np.r_[first[1:], idx.size] - 1
+        # before the first and after the last centre: the scan lines to the frame edge
+        # (a line that runs out of the image has no end to trim)
+        gap_before = np.r_[idx[0], idx[first[1:]] - idx[last[:-1]] - 1]
+        gap_after = np.r_[gap_before[1:], y.size - 1 - idx[-1]]
+        long_gap = max(2 * min_points, 3)
+        dist_first = np.where(gap_before[seg] >= long_gap, idx - idx[first[seg]], trim)
+        dist_last = np.where(gap_after[seg] >= long_gap, idx[last[seg]] - idx, trim)
+        keep_seg_pt = np.minimum(dist_first, dist_last) >= trim
+    else:
+        keep_seg_pt = np.ones(idx.size, bool)
+    kept = keep_seg[seg] & keep_seg_pt
+    span = np.zeros(n_seg)
+    np.maximum.at(span, seg, idx.astype(np.float64))
+    start = np.full(n_seg, np.inf)
+    np.minimum.at(start, seg, idx.astype(np.float64))
+    if not np.any(keep_seg & (span - start + 1 >= min_line)):
+        return labels, np.zeros(y.shape, bool)
     labels[idx[kept]] = seg[kept]
     keep = np.zeros(y.shape, bool)
     keep[idx[kept]] = True
@@ -117,10 +145,18 @@ def consistent(
     # the first local fit only (every centre is judged by the local fits).
     x = np.flatnonzero(valid)
     xs = (x - x.mean()) / max(float(np.ptp(x)), 1.0)
-    seed = np.ones(x.size, bool)
+    yx = y[x]
+    # start from a robust straight line (median of the slopes between the two halves,
+    # median intercept), so that a cluster of stray points cannot bend the cubic
+    half_n = x.size // 2
+    slope = float(np.median((yx[half_n:2 * half_n] - yx[:half_n]) / (
+        xs[half_n:2 * half_n] - xs[:half_n])))
+    r0 = yx - slope * xs
+    r0 = np.abs(r0 - np.median(r0))
+    seed = r0 <= max(20.0, 5.0 * 1.4826 * float(np.median(r0)))
     for _ in range(3):
-        coef = np.polyfit(xs[seed], y[x][seed], 3)
-        r = np.abs(y[x] - np.polyval(coef, xs))
+        coef = np.polyfit(xs[seed], yx[seed], 3)
+        r = np.abs(yx - np.polyval(coef, xs))
         seed = r <= max(1.0, 4.0 * 1.4826 * float(np.median(r[seed])))
         if seed.sum() < 12:
             seed[:] = True
@@ -128,8 +164,16 @@ def consistent(
     off_curve = np.zeros(valid.shape, bool)
     off_curve[x[~seed]] = True
     keep &= ~off_curve
-    for factor, floor in ((3.0, 1.0), (4.0, 0.5), (5.0, floor_px)):
+    for step, (factor, floor) in enumerate(((3.0, 1.0), (4.0, 0.5), (5.0, floor_px))):
         pred, count = _local_fit(yv, keep.astype(np.float64), half)
+        if step == 0 and off_curve.any():
+            # A piece of line the global cubic does not follow (a strongly curved line,
+            # a piece beyond a gap) is judged by its own points when it has enough
+            # of them to be a line on its own (at least 30 in the window).
+            pred_all, count_all = _local_fit(yv, valid.astype(np.float64), half)
+            own = (count < 6) & (count_all >= 30)
+            pred = np.where(own, pred_all, pred)
+            count = np.where(own, count_all, count)
         r = np.abs(yv - pred)
         judged = valid & (count >= 6) & np.isfinite(r)
         if not judged.any():

@@ -29,6 +29,14 @@ import numpy as np
 AMBIGUOUS_COHERENCE = 0.12
 
 
+def ridge_offset(width_px: float, factor: int = 4) -> int:
+    """Offset `d` (coarse pixels) of the two-sided response for a line of FWHM
+    `width_px` on a `factor`-times downsampled image: one line width plus one coarse
+    pixel, at least 2. (With `d = 1` a line centred on a block boundary becomes a
+    two-pixel plateau whose response is zero.)"""
+    return max(2, int(round(width_px / factor)) + 1)
+
+
 def ridge_response(small: np.ndarray, d: int, axis: int) -> np.ndarray:
     """Two-sided ridge response of `small` along `axis` (0: v, rows; 1: u) at offset `d`,
     same shape, 0 where a side falls outside the image."""
@@ -77,7 +85,7 @@ def scan_direction(
                 weight[: 2 * h2, : 2 * w2].astype(np.float32), (w2, h2),
                 interpolation=cv2.INTER_AREA,
             )
-        d = max(1, int(round(d / 2)))
+        d = max(2, int(round(d / 2)))
         floor = floor / 2.0  # block-mean noise halves
     dd = max(1, int(round(d / math.sqrt(2.0))))
     responses = (
