@@ -10,6 +10,7 @@ from ._calibration import (
 )
 from ._observations import (
     Nominal as Nominal,
+    DroppedView as DroppedView,
     Observations as Observations,
     ObservationsError as ObservationsError,
     StageScan as StageScan,
