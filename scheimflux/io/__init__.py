@@ -9,8 +9,8 @@ from ._calibration import (
     write_calibration as write_calibration,
 )
 from ._observations import (
-    Nominal as Nominal,
     DroppedView as DroppedView,
+    Nominal as Nominal,
     Observations as Observations,
     ObservationsError as ObservationsError,
     StageScan as StageScan,

@@ -159,7 +159,7 @@ class CharucoBoard:
 
 
 def detect_charuco(
-    image: Any, board: CharucoBoard, *, min_corners: int = 6, refine: bool = True
+    image: Any, board: CharucoBoard, *, min_corners: int = 6, refine: bool = False
 ) -> DetectionResult:
     """Find the ChArUco corners of `board` that `image` shows.
 

@@ -3,10 +3,10 @@ options and detect it in an image.
 
 | `kind` | class | detector | points |
 |---|---|---|---|
-| `checkerboard` | `Checkerboard` | `findChessboardCornersSB` + `cornerSubPix` | inner corners, all or none |
-| `charuco` | `CharucoBoard` | `aruco.CharucoDetector` | inner corners by ID, any subset |
-| `circles` | `CircleGrid` | `findCirclesGrid` (symmetric) | circle centres, all or none |
-| `acircles` | `CircleGrid(asymmetric=True)` | `findCirclesGrid` (asymmetric) | circle centres, all or none |
+| `checkerboard` | `Checkerboard` | `findChessboardCornersSB`, `cornerSubPix` | all or none |
+| `charuco` | `CharucoBoard` | `aruco.CharucoDetector` | corners by ID, any subset |
+| `circles` | `CircleGrid` | `findCirclesGrid` (symmetric) | all or none |
+| `acircles` | `CircleGrid(asymmetric=True)` | `findCirclesGrid` (asymmetric) | all or none |
 """
 
 from __future__ import annotations
