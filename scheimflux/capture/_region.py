@@ -14,7 +14,28 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["board_region", "board_stripe", "grey_native"]
+__all__ = ["board_region", "board_stripe", "grey_native", "laser_channel", "laser_free"]
+
+
+def laser_free(image: Any) -> np.ndarray:
+    """The image for target detection: a colour image's per-pixel minimum over its
+    channels (a laser of one colour adds light to one or two channels, a grey board
+    reflects room light into all three); a grey image as it is."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] >= 3:
+        return img[:, :, :3].min(axis=2)
+    return img
+
+
+def laser_channel(image: Any) -> np.ndarray:
+    """The image for stripe extraction: for colour, the per-pixel spread between the
+    brightest and the darkest channel (the laser's own light, without the grey room light
+    on the board); a grey image as it is."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] >= 3:
+        c = img[:, :, :3]
+        return (c.max(axis=2) - c.min(axis=2)).astype(img.dtype)
+    return grey_native(img)
 
 
 def grey_native(image: Any) -> np.ndarray:
@@ -77,8 +98,9 @@ def board_region(
 
 
 def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None):
-    """The laser line on the board: `extract_stripe` on the grey image with every pixel
-    outside `mask` set to the image's dark level.
+    """The laser line on the board: `extract_stripe` on the grey image (for colour, the
+    laser's channel spread, `laser_channel`) with every pixel outside `mask` set to the
+    image's dark level.
 
     This adapter is the single place where `detect` extracts board stripes; it is meant
     to be replaced by the stripe module's own mask support.
@@ -87,7 +109,7 @@ def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None)
     """
     from ..stripe import extract_stripe
 
-    img = grey_native(image)
+    img = laser_channel(image)
     if not np.any(mask):
         raise ValueError("empty board region")
     dark = np.percentile(img[mask][::7], 1.0) if mask.sum() > 50 else 0

@@ -22,7 +22,7 @@ import numpy as np
 from ..io._observations import DroppedView, Nominal, Observations, StageScan, View
 from ..targets._target import Target, detect_target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
-from ._region import board_region, board_stripe
+from ._region import board_region, board_stripe, laser_free
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
 
@@ -137,7 +137,7 @@ def detect_captures(
             drop(cv, f"{os.path.basename(cv.board)} cannot be read or decoded")
             continue
         size(image, cv.board)
-        res = detect_target(image, target, mirrored=mirrored)
+        res = detect_target(laser_free(image), target, mirrored=mirrored)
         n = int(res.mask.sum())
         reason = ""
         if not res.found:
