@@ -111,7 +111,7 @@ def opencv_equivalent(
     *,
     distortion: str | None = None,
     tilt: bool | None = None,
-    grid: tuple[int, int] = (33, 25),
+    grid: tuple[int, int] = (17, 13),
 ):
     """The OpenCV camera model equivalent to `camera`, and how well it fits.
 
@@ -174,6 +174,22 @@ def _free_distortion(flags: int) -> np.ndarray:
     return np.asarray(free, int)
 
 
+def opencv_rays(K: np.ndarray, dist14: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Unit ray directions of pixels `(N, 2)` under OpenCV's model (`cv2.undistortPoints`,
+    iterated to 1e-14)."""
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    xy = cv2.undistortPoints(
+        np.asarray(uv, np.float64).reshape(-1, 1, 2),
+        K,
+        dist14,
+        R=np.eye(3),
+        P=np.eye(3),
+        criteria=crit,
+    ).reshape(-1, 2)
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def _refine_on_rays(K, dist, d, uv, flags):
     """Least squares of OpenCV's projection of the camera's ray directions `d` (rotated
     by a free rotation: OpenCV's frame) against their pixels `uv`, started from the
@@ -185,10 +201,7 @@ def _refine_on_rays(K, dist, d, uv, flags):
     dist14[: len(dist)] = dist
     free = _free_distortion(flags)
     # the rotation from the camera's frame to OpenCV's: Kabsch on the fitted rays
-    from ..camera._opencv import OpenCVCamera
-
-    ocv = OpenCVCamera.from_opencv(K, dist14)
-    d_cv = np.asarray(ocv.backproject(uv).direction, np.float64)
+    d_cv = opencv_rays(K, dist14, uv)
     ok = np.all(np.isfinite(d_cv), axis=1)
     U, _, Vt = np.linalg.svd(d_cv[ok].T @ d[ok])
     R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
