@@ -99,26 +99,38 @@ def board_region(
 
 def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None):
     """The laser line on the board: `extract_stripe` on the grey image (for colour, the
-    laser's channel spread, `laser_channel`) with every pixel outside `mask` set to the
-    image's dark level.
+    laser's channel spread, `laser_channel`) with every pixel outside `mask` replaced by
+    a heavily blurred copy; centres within a stripe width of the region's edge are
+    marked outside.
 
     This adapter is the single place where `detect` extracts board stripes; it is meant
     to be replaced by the stripe module's own mask support.
 
-    **Returns:** a `StripeResult`; raises `ValueError` when nothing can be extracted.
+    **Returns:** `(StripeResult, inside)`: `inside` `(N,)` bool marks the centres on the
+    board region. Raises `ValueError` when nothing can be extracted.
     """
     from ..stripe import extract_stripe
 
     img = laser_channel(image)
     if not np.any(mask):
         raise ValueError("empty board region")
-    dark = np.percentile(img[mask][::7], 1.0) if mask.sum() > 50 else 0
-    img = np.where(mask, img, np.asarray(dark).astype(img.dtype))
-    result = extract_stripe(img, width_px=width_px)
+    # outside the region: a heavily blurred copy, so that the region's edge is no step
+    # (a step would look like a line's flank); centres within a stripe width of the edge
+    # are dropped all the same
+    w = 5.0 if width_px is None else float(width_px)
+    work = img.astype(np.float32)
+    smooth = cv2.GaussianBlur(work, (0, 0), 4.0 * w)
+    work = np.where(mask, work, smooth)
+    if np.issubdtype(img.dtype, np.integer):
+        work = np.rint(work).astype(img.dtype)
+    result = extract_stripe(work, width_px=width_px)
+    edge = int(np.ceil(w))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+    core = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
     uv = result.uv
     inside = np.zeros(len(uv), bool)
     fin = np.all(np.isfinite(uv), axis=1)
     iu = np.clip(np.rint(uv[fin, 0]).astype(int), 0, mask.shape[1] - 1)
     iv = np.clip(np.rint(uv[fin, 1]).astype(int), 0, mask.shape[0] - 1)
-    inside[fin] = mask[iv, iu]
+    inside[fin] = core[iv, iu]
     return result, inside
