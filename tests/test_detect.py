@@ -117,10 +117,12 @@ def test_cli_detect(tmp_path, cam, capsys):
         cv2.imwrite(str(images / f"view_{k}_board.png"), img)
     stripe, _ = render_stripe((600, 800), width_px=5.0, seed=0)
     cv2.imwrite(str(images / "view_0_stripe.png"), stripe)
-    # view 1 has no stripe image; view 2's board image is corrupt; view 10 has no board
+    # view 1 has no stripe image; view 2's board image is corrupt; view 10's board image is
+    # blank (no board found); view 11 has only a stripe image
     (images / "view_2_board.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
     cv2.imwrite(str(images / "view_2_stripe.png"), stripe)
     cv2.imwrite(str(images / "view_10_board.png"), np.full((600, 800), 128, np.uint8))
+    cv2.imwrite(str(images / "view_11_stripe.png"), stripe)
     (images / "notes.txt").write_text("hello")
     for i in range(3):
         cv2.imwrite(str(scan / f"frame{i}.png"), stripe)
@@ -129,33 +131,53 @@ def test_cli_detect(tmp_path, cam, capsys):
         "detect", str(images), "--board", "7x6", "--square-mm", "0.2", "--out", str(out),
         "--focal-length-mm", "97", "--magnification", "1.5", "--tilt-deg", "0", "13",
         "--scan", str(scan), "--delta-omega-deg", "10", "--gauge-radius-mm", "17.5",
-        "--stripe-width-px", "5",
+        "--stripe-width-px", "5", "--pixel-pitch-mm", "0.0044", "0.0045",
     ]  # fmt: skip
     assert main(argv) == 0
-    err = capsys.readouterr().err
-    assert "view_2_board.png" in err  # the corrupt file is named
-    assert "view_10_board.png" in err and "not found" in err
-    assert "view 1" in err and "no stripe image" in err
+    cap = capsys.readouterr()
+    err = cap.err
+    assert "view 2 (view_2_board.png, view_2_stripe.png) dropped: view_2_board.png cannot" in err
+    assert "view 10 (view_10_board.png) dropped: image is blank" in err
+    assert "view 11 (view_11_stripe.png) dropped: no board image" in err
+    assert "view 1: no stripe image" in err and "notes.txt" in err
+    assert "found in 2 of 5 view(s)" in cap.out and "dropped 3 view(s)" in cap.out
 
     obs = read_observations(out)
     assert (obs.width, obs.height) == (800, 600)
-    assert obs.pixel_pitch_mm == (0.0044, 0.0044)
+    assert obs.pixel_pitch_mm == (0.0044, 0.0045)
     assert obs.nominal.magnification == 1.5 and obs.nominal.tilt_deg == (0.0, 13.0)
     np.testing.assert_allclose(obs.board_points_mm, SMALL.points_mm)
-    assert len(obs.views) == 3  # views 0, 1 and 10 (view 2 skipped)
-    for view, truth in zip(obs.views[:2], truths):
+    assert len(obs.views) == 2  # views 0 and 1: the others are dropped, not kept empty
+    for view, truth in zip(obs.views, truths):
         assert np.hypot(*(view.corners_px - truth).T).max() <= 0.1
-    assert not obs.views[2].corner_mask.any()
-    assert len(obs.views[0].stripe_px) > 700 and len(obs.views[1].stripe_px) == 0
+    assert obs.views[0].source == ("view_0_board.png", "view_0_stripe.png")
+    assert obs.views[1].source == ("view_1_board.png",)
+    assert [d.view for d in obs.dropped] == [2, 10, 11]
+    assert obs.dropped[1].images == ("view_10_board.png",)
+    # the horizontal test stripe crosses the whole image; only the part on the board
+    # region (board outline from the truth corners, grown by half a square) is kept
+    from scheimflux.capture import board_region
+
+    region, _ = board_region(
+        truths[0], (600, 800), margin_px=0.5 * np.linalg.norm(truths[0][1] - truths[0][0]),
+        board_xy_mm=SMALL.points_mm[:, :2], extent_mm=SMALL.extent_mm,
+    )  # fmt: skip
+    st = obs.views[0].stripe_px
+    on_board = region[np.rint(st[:, 1]).astype(int), np.rint(st[:, 0]).astype(int)]
+    assert on_board.mean() > 0.99 and len(st) > 0.9 * region.any(axis=0).sum()
+    assert len(obs.views[1].stripe_px) == 0
     assert len(obs.stage.frames) == 3 and obs.stage.gauge_radius_mm == 17.5
-    assert json.loads(out.read_text())["views"][2]["corners_px"][0] is None
+    doc = json.loads(out.read_text())
+    assert doc["dropped_views"][0]["reason"].startswith("view_2_board.png cannot be read")
 
     # refuses to overwrite; then a different sensor size is an error naming the file
+    before = out.read_bytes()
     assert main(argv) == 1
     assert "exists" in capsys.readouterr().err
     cv2.imwrite(str(images / "view_3_board.png"), np.zeros((100, 100), np.uint8))
     assert main(argv + ["--overwrite"]) == 1
     assert "view_3_board.png is 100x100 px" in capsys.readouterr().err
+    assert out.read_bytes() == before
 
 
 def test_cli_detect_nothing_found(tmp_path, capsys):
@@ -163,7 +185,9 @@ def test_cli_detect_nothing_found(tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "im" / "view_0_board.png"), np.zeros((64, 64), np.uint8))
     argv = ["detect", str(tmp_path / "im"), "--board", "7x6", "--square-mm", "0.2"]
     assert main(argv + ["--out", str(tmp_path / "o.json")]) == 1
-    assert "no checkerboard 7x6 found" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "error: no checkerboard 7x6 found in any image" in err
+    assert "view 0: image is blank" in err
     assert not (tmp_path / "o.json").exists()
     assert main(argv + ["--out", str(tmp_path / "o.json"), "--scan", str(tmp_path)]) == 1
     assert "--delta-omega-deg" in capsys.readouterr().err

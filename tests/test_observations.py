@@ -54,7 +54,7 @@ def test_no_clobber(tmp_path):
     [
         (lambda d: d.pop("format"), "format must be"),
         (lambda d: d.pop("sensor"), "missing key 'sensor'"),
-        (lambda d: d["sensor"].pop("pixel_pitch_mm"), "sensor.pixel_pitch_mm"),
+        (lambda d: d["sensor"].__setitem__("pixel_pitch_mm", [1]), "sensor.pixel_pitch_mm"),
         (lambda d: d["views"][0]["corners_px"].pop(), "has 3 entries but board_points_mm has 4"),
         (lambda d: d["views"][0]["corners_px"].__setitem__(0, [1, "a"]), r"corners_px\[0\]"),
         (lambda d: d["board_points_mm"].__setitem__(0, [1, 2]), r"board_points_mm\[0\]"),

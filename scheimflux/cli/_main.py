@@ -26,6 +26,7 @@ _SUBCOMMANDS = (
     "_extract",
     "_calibrate",
     "_reconstruct",
+    "_export",
 )
 
 

@@ -9,6 +9,7 @@ from ._calibration import (
     write_calibration as write_calibration,
 )
 from ._observations import (
+    DroppedView as DroppedView,
     Nominal as Nominal,
     Observations as Observations,
     ObservationsError as ObservationsError,

@@ -5,11 +5,19 @@
  "sensor": {"width": 1600, "height": 1200, "pixel_pitch_mm": [0.0044, 0.0044]},
  "nominal": {"focal_length_mm": 97, "magnification": 1.5, "tilt_deg": [0, 13]},  # optional
  "board_points_mm": [[x, y, z], ...],
- "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...]}, ...],
+ "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...],
+            "source": ["view_0_board.png", "view_0_stripe.png"]}, ...],     # source optional
+ "dropped_views": [{"view": 3, "images": ["view_3.jpg"],                           # optional
+                    "reason": "no 11x8 checkerboard found ..."}, ...],
  "stage": {"delta_omega_deg": 10, "gauge_radius_mm": 17.5,                        # optional
            "frames": [[[u, v], ...], ...]}}
 ```
 `corners_px` follows the order of `board_points_mm`; null marks a corner not detected.
+`sensor.pixel_pitch_mm` is optional (null or absent when the datasheet value was not
+given to `detect`; the thick-lens model needs it). `source` names the image files a view
+was measured in; `dropped_views` lists the captures left out (target not found, image
+unreadable, ...) with the capture's view number, its image names and the reason. Files
+without these keys (older files) read as before.
 """
 
 from __future__ import annotations
@@ -23,6 +31,14 @@ import numpy as np
 from ._files import load_json, write_json
 
 FORMAT = "scheimflux.observations/1"
+
+# The keys each level of the document may hold (for validation of unknown keys).
+TOP_KEYS = ("format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage")
+SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
+NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
+VIEW_KEYS = ("corners_px", "stripe_px", "source")
+DROPPED_KEYS = ("view", "images", "reason")
+STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,10 +56,20 @@ class View:
 
     corners_px: np.ndarray  # (M, 2) float64
     stripe_px: np.ndarray  # (K, 2) float64
+    source: tuple[str, ...] = ()  # image file names the view was measured in
 
     @property
     def corner_mask(self) -> np.ndarray:
         return np.all(np.isfinite(self.corners_px), axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class DroppedView:
+    """A capture left out of the observations: its view number, images and the reason."""
+
+    view: int
+    images: tuple[str, ...]
+    reason: str
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,11 +87,12 @@ class Observations:
 
     width: int
     height: int
-    pixel_pitch_mm: tuple[float, float]
+    pixel_pitch_mm: tuple[float, float] | None  # None: not given (datasheet value unknown)
     board_points_mm: np.ndarray  # (M, 3)
     views: list[View]
     nominal: Nominal | None = None
     stage: StageScan | None = None
+    dropped: list[DroppedView] = dataclasses.field(default_factory=list)
 
     def corners(self) -> tuple[np.ndarray, np.ndarray]:
         """All views' corners stacked, `(V, M, 2)`, and the detection mask `(V, M)`."""
@@ -123,10 +150,11 @@ def parse_observations(doc) -> Observations:
     sensor = _require(doc, "sensor", "")
     width = _number(_require(sensor, "width", "sensor"), "sensor.width", positive=True)
     height = _number(_require(sensor, "height", "sensor"), "sensor.height", positive=True)
-    pitch = _require(sensor, "pixel_pitch_mm", "sensor")
-    if not isinstance(pitch, list) or len(pitch) != 2:
-        raise ObservationsError("sensor.pixel_pitch_mm must be [dx, dy]")
-    pitch = tuple(_number(p, "sensor.pixel_pitch_mm", positive=True) for p in pitch)
+    pitch = sensor.get("pixel_pitch_mm")
+    if pitch is not None:
+        if not isinstance(pitch, list) or len(pitch) != 2:
+            raise ObservationsError("sensor.pixel_pitch_mm must be [dx, dy] or null")
+        pitch = tuple(_number(p, "sensor.pixel_pitch_mm", positive=True) for p in pitch)
 
     nominal = None
     if doc.get("nominal") is not None:
@@ -163,7 +191,21 @@ def parse_observations(doc) -> Observations:
                 f"{len(board)} (use null for corners that were not detected)"
             )
         stripe = _points(vd.get("stripe_px", []), f"views[{i}].stripe_px", 2)
-        views.append(View(corners, stripe))
+        views.append(View(corners, stripe, _names(vd.get("source", []), f"views[{i}].source")))
+
+    dropped = []
+    dropped_doc = doc.get("dropped_views", [])
+    if not isinstance(dropped_doc, list):
+        raise ObservationsError("dropped_views must be a list")
+    for i, dd in enumerate(dropped_doc):
+        where = f"dropped_views[{i}]"
+        k = _require(dd, "view", where)
+        if not isinstance(k, int) or isinstance(k, bool) or k < 0:
+            raise ObservationsError(f"{where}.view must be a view number >= 0, got {k!r}")
+        reason = _require(dd, "reason", where)
+        if not isinstance(reason, str):
+            raise ObservationsError(f"{where}.reason must be a string")
+        dropped.append(DroppedView(k, _names(dd.get("images", []), f"{where}.images"), reason))
 
     stage = None
     if doc.get("stage") is not None:
@@ -178,7 +220,13 @@ def parse_observations(doc) -> Observations:
         frames = [_points(f, f"stage.frames[{i}]", 2) for i, f in enumerate(frames_doc)]
         stage = StageScan(dw, r, frames)
 
-    return Observations(int(width), int(height), pitch, board, views, nominal, stage)
+    return Observations(int(width), int(height), pitch, board, views, nominal, stage, dropped)
+
+
+def _names(value, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(n, str) for n in value):
+        raise ObservationsError(f"{where} must be a list of file names")
+    return tuple(value)
 
 
 def read_observations(path: str | os.PathLike) -> Observations:
@@ -200,9 +248,10 @@ def observations_to_dict(obs: Observations) -> dict:
         "sensor": {
             "width": int(obs.width),
             "height": int(obs.height),
-            "pixel_pitch_mm": [float(p) for p in obs.pixel_pitch_mm],
         },
     }
+    if obs.pixel_pitch_mm is not None:
+        doc["sensor"]["pixel_pitch_mm"] = [float(p) for p in obs.pixel_pitch_mm]
     if obs.nominal is not None:
         n = obs.nominal
         doc["nominal"] = {
@@ -219,9 +268,15 @@ def observations_to_dict(obs: Observations) -> dict:
         {
             "corners_px": _rows(np.asarray(v.corners_px)),
             "stripe_px": [r for r in _rows(np.asarray(v.stripe_px)) if r is not None],
+            **({"source": list(v.source)} if v.source else {}),
         }
         for v in obs.views
     ]
+    if obs.dropped:
+        doc["dropped_views"] = [
+            {"view": int(d.view), "images": list(d.images), "reason": str(d.reason)}
+            for d in obs.dropped
+        ]
     if obs.stage is not None:
         doc["stage"] = {
             "delta_omega_deg": float(obs.stage.delta_omega_deg),

@@ -1,15 +1,21 @@
 """Render a simulated calibration data set as image files (for `scheimflux detect`).
 
-[`write_scene_images`][] takes a rig, a board and the [`Truth`][] of
-[`simulate_observations`][] and writes, into one folder,
+[`write_scene_images`][] takes a rig, a target and the [`Truth`][] of
+[`simulate_observations`][] and writes, into one folder, in one of two layouts:
 
-- `view_<k>_board.png`: the checkerboard in pose k, rendered through the ray tracer
-  (`Rig.project`, inverted numerically by `render_checkerboard`), slightly blurred;
-- `view_<k>_stripe.png`: the laser stripe on the board in the same pose, a Gaussian
-  line whose exact centre runs through the view's noise-free stripe pixels;
-- `scan/frame_<i>.png`: the ring-gauge scan's frames, likewise from the scan pixels.
+- `layout="pair"`: `view_<k>_board.<ext>`, the target (checkerboard, ChArUco board or
+  circle grid) in pose k, rendered through the ray tracer (`Rig.project`, inverted
+  numerically by `render_target`), slightly blurred; and `view_<k>_stripe.<ext>`, the
+  laser stripe on the board in the same pose, a Gaussian line whose exact centre runs
+  through the view's noise-free stripe pixels;
+- `layout="single"`: `view_<k>.<ext>`, one image with both, composed as
+  `albedo × (ambient + laser)`: the rendered target is the board's reflectance, lit by
+  room light `ambient_level` and by the laser line (peak `laser_peak`), then noise;
 
-The names follow `scheimflux detect`'s convention (`IMAGES_DIR` and `--scan SCAN_DIR`).
+and `scan/frame_<i>.<ext>`: the ring-gauge scan's frames, from the scan pixels.
+`colour=True` writes 3-channel BGR images with a red laser (the board grey);
+`ext="jpg"` writes JPEG (8 bits only). The names follow `scheimflux detect`'s
+convention (`IMAGES_DIR` and `--scan SCAN_DIR`).
 """
 
 from __future__ import annotations
@@ -21,8 +27,8 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from ._render_board import render_checkerboard
 from ._render_stripe import render_stripe
+from ._render_target import render_target
 
 __all__ = ["write_scene_images"]
 
@@ -55,7 +61,7 @@ def _stripe_image(shape, pts, **kw) -> np.ndarray:
         along, idx = np.unique(along[order], return_index=True)
         across = across[order][idx]
     if len(pts) < 2 or len(along) < 2:
-        img, _ = render_stripe(shape, None, peak=0.0, **kw)
+        img, _ = render_stripe(shape, None, **{**kw, "peak": 0.0})
         return img
     n_along = h if vertical else w
     lo, hi = float(along[0]), float(along[-1])
@@ -86,13 +92,34 @@ def _stripe_image(shape, pts, **kw) -> np.ndarray:
     return img
 
 
+_EXTS = ("png", "jpg", "jpeg", "tif", "tiff", "bmp")
+
+
+def _write(path: str, img: np.ndarray, ext: str, jpeg_quality: int) -> None:
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if ext in ("jpg", "jpeg") else []
+    if not cv2.imwrite(path, img, params):
+        raise OSError(f"could not write {path}")
+
+
+def _quantise(img: np.ndarray, bit_depth: int) -> np.ndarray:
+    full = float(2**bit_depth - 1)
+    out = np.rint(np.clip(img, 0.0, 1.0) * full)
+    return out.astype(np.uint8 if bit_depth == 8 else np.uint16)
+
+
 def write_scene_images(
     out_dir: str | os.PathLike,
     rig,
     board,
     truth,
     *,
+    layout: str = "pair",
+    ext: str = "png",
+    colour: bool = False,
+    jpeg_quality: int = 95,
     ambient: str = "low",
+    ambient_level: float = 0.55,
+    laser_peak: float = 0.6,
     stripe_width_px: float = 5.0,
     bit_depth: int = 8,
     noise_sigma: float = 0.004,
@@ -104,22 +131,37 @@ def write_scene_images(
     """Write the board, stripe and gauge-scan images of a simulated data set.
 
     **Arguments:**
-    - `out_dir`: folder for `view_<k>_board.png` and `view_<k>_stripe.png`; the scan
-      frames go to `out_dir/scan/frame_<i>.png` (folders created if missing).
+    - `out_dir`: folder for the view images; the scan frames go to
+      `out_dir/scan/frame_<i>.<ext>` (folders created if missing).
     - `rig`: the simulated `Rig` (its `sensor_size` is the image size).
-    - `board`: the `Checkerboard`.
+    - `board`: the target (`Checkerboard`, `CharucoBoard` or `CircleGrid`).
     - `truth`: the `Truth` of `simulate_observations(rig, board, ...)`.
-    - `ambient`: background of the stripe images, `"dark"`, `"low"` or `"bright"`.
+    - `layout`: `"pair"` (board and stripe images) or `"single"` (one image per view).
+    - `ext`: file type, one of png, jpg, jpeg, tif, tiff, bmp.
+    - `colour`: 3-channel BGR images, red laser.
+    - `jpeg_quality`: JPEG quality (0–100).
+    - `ambient`: background of the stripe images (pair layout, scan), `"dark"`, `"low"`
+      or `"bright"`.
+    - `ambient_level`, `laser_peak`: room light and laser peak (fractions of full scale
+      on a white surface) of the single layout.
     - `stripe_width_px`: FWHM of the laser line (px).
-    - `bit_depth`: 8, 12 or 16 (16-bit PNG above 8).
+    - `bit_depth`: 8, 12 or 16 (16-bit PNG/TIFF above 8; JPEG and BMP need 8).
     - `noise_sigma`: additive Gaussian noise, fraction of full scale.
     - `blur_sigma_px`: Gaussian blur of the board images (px).
     - `seed`: seed of the noise (each image gets its own stream).
     - `overwrite`: replace existing files; otherwise any existing target raises
       `FileExistsError` before anything is written.
 
-    **Returns:** the paths written, views first (board, stripe per view), then the scan.
+    **Returns:** the paths written, views first (board then stripe per view in the pair
+    layout), then the scan.
     """
+    if layout not in ("pair", "single"):
+        raise ValueError(f"layout must be 'pair' or 'single', got {layout!r}")
+    ext = str(ext).lower().lstrip(".")
+    if ext not in _EXTS:
+        raise ValueError(f"ext must be one of {', '.join(_EXTS)}, got {ext!r}")
+    if ext in ("jpg", "jpeg", "bmp") and bit_depth != 8:
+        raise ValueError(f"{ext} images hold 8 bits; got bit_depth={bit_depth}")
     out = os.fspath(out_dir)
     scan_dir = os.path.join(out, "scan")
     w, h = (int(s) for s in rig.sensor_size)
@@ -128,10 +170,13 @@ def write_scene_images(
     n_frames = len(truth.scan_px)
     jobs = []
     for k in range(n_views):
-        jobs.append((os.path.join(out, f"view_{k}_board.png"), "board", k))
-        jobs.append((os.path.join(out, f"view_{k}_stripe.png"), "stripe", k))
+        if layout == "single":
+            jobs.append((os.path.join(out, f"view_{k}.{ext}"), "single", k))
+        else:
+            jobs.append((os.path.join(out, f"view_{k}_board.{ext}"), "board", k))
+            jobs.append((os.path.join(out, f"view_{k}_stripe.{ext}"), "stripe", k))
     for i in range(n_frames):
-        jobs.append((os.path.join(scan_dir, f"frame_{i}.png"), "scan", i))
+        jobs.append((os.path.join(scan_dir, f"frame_{i}.{ext}"), "scan", i))
     if not overwrite:
         for path, _, _ in jobs:
             if os.path.exists(path):
@@ -150,22 +195,41 @@ def write_scene_images(
     for n, (path, kind, k) in enumerate(jobs):
         t0 = time.perf_counter()
         s = int(seed) * 100003 + n
-        if kind == "board":
-            img = render_checkerboard(
-                board,
-                _board_to_pixel(rig, truth.board_poses[k]),
-                shape=shape,
-                blur_sigma_px=float(blur_sigma_px),
-                bit_depth=int(bit_depth),
-                noise_sigma=float(noise_sigma),
-                seed=s,
-            )
-        elif kind == "stripe":
-            img = _stripe_image(shape, truth.stripe_px[k], seed=s, **stripe_kw)
+        if kind in ("board", "single"):
+            f = _board_to_pixel(rig, truth.board_poses[k])
+            if kind == "board":
+                img = render_target(
+                    board, f, shape=shape, blur_sigma_px=float(blur_sigma_px),
+                    bit_depth=int(bit_depth), noise_sigma=float(noise_sigma), seed=s,
+                )  # fmt: skip
+                if colour:
+                    img = np.dstack([img] * 3)
+            else:
+                albedo = render_target(
+                    board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
+                ) / 65535.0  # fmt: skip
+                laser = _stripe_image(
+                    shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
+                    ambient=0.0, noise_sigma=0.0, saturate=False, seed=s,
+                )  # fmt: skip
+                rng = np.random.default_rng(s)
+                lit = albedo * float(ambient_level)
+                if colour:  # grey room light on every channel, the red laser on R only
+                    chans = [lit, lit, lit + albedo * float(laser_peak) * laser]
+                    img = np.dstack(
+                        [_quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth)
+                         for c in chans]
+                    )  # fmt: skip
+                else:
+                    c = lit + albedo * float(laser_peak) * laser
+                    img = _quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth)
         else:
-            img = _stripe_image(shape, truth.scan_px[k], seed=s, **stripe_kw)
-        if not cv2.imwrite(path, img):
-            raise OSError(f"could not write {path}")
+            pts = truth.stripe_px[k] if kind == "stripe" else truth.scan_px[k]
+            img = _stripe_image(shape, pts, seed=s, **stripe_kw)
+            if colour:
+                dark = _stripe_image(shape, pts, seed=s, **{**stripe_kw, "peak": 0.0})
+                img = np.dstack([dark, dark, img])
+        _write(path, img, ext, jpeg_quality)
         written.append(path)
         if verbose:
             print(f"  {os.path.relpath(path, out)}: {time.perf_counter() - t0:.2f} s")

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-__all__ = ["BoardMap", "board_map", "render_checkerboard"]
+__all__ = ["BoardMap", "board_map", "render_checkerboard", "render_target"]
 
 _CHUNK_ELEMENTS = 1 << 20  # sub-samples evaluated at once
 
@@ -367,6 +367,12 @@ def render_checkerboard(
             bmap.rows(v0, v1), cols, rows, s, margin, black, white, background, supersample
         )
 
+    return _finish(img, bmap, blur_sigma_px, vignetting, noise_sigma, seed, bit_depth)
+
+
+def _finish(img, bmap, blur_sigma_px, vignetting, noise_sigma, seed, bit_depth) -> np.ndarray:
+    """Blur, vignetting, noise and quantisation of a rendered float image (full scale 1)."""
+    H, W = img.shape
     if callable(blur_sigma_px):
         c = bmap.coarse_xy.reshape(-1, 2)
         sig = np.asarray(blur_sigma_px(c), dtype=np.float64).reshape(bmap.node_ok.shape)

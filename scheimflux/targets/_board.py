@@ -94,6 +94,11 @@ class Checkerboard:
         return f"{self.cols}x{self.rows} inner corners, {self.square_mm:g} mm squares"
 
     @property
+    def kind(self) -> str:
+        """`"checkerboard"` (the target's name for `detect --target`)."""
+        return "checkerboard"
+
+    @property
     def size(self) -> str:
         """The board in `"COLSxROWS"` notation."""
         return f"{self.cols}x{self.rows}"

@@ -22,66 +22,20 @@ Pixel (0, 0) is the centre of the top-left pixel; u grows to the right, v downwa
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import cv2
 import numpy as np
+
+from ._result import DetectionResult, grey, normalise
 
 __all__ = ["DetectionResult", "detect_checkerboard"]
 
 _SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
 
 
-@dataclasses.dataclass(frozen=True)
-class DetectionResult:
-    """The corners found in one image.
-
-    **Fields:**
-    - `corners_px`: `(M, 2)` float64 pixels in the order of the board's `points_mm`;
-      NaN rows where a corner was not found (all of them when `found` is False).
-    - `found`: whether the whole board was detected.
-    - `message`: why detection failed, or notes on a successful one (may be empty).
-    """
-
-    corners_px: np.ndarray
-    found: bool
-    message: str = ""
-
-    @property
-    def mask(self) -> np.ndarray:
-        """`(M,)` bool: corners with finite pixel coordinates."""
-        return np.all(np.isfinite(self.corners_px), axis=1)
-
-
-def _grey(image: Any) -> np.ndarray:
-    arr = np.asarray(image)
-    if arr.dtype == np.bool_ or not (
-        np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
-    ):
-        raise ValueError(f"image must hold integer or float grey levels, got dtype {arr.dtype}")
-    if arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[:, :, 0]
-    elif arr.ndim == 3 and arr.shape[2] in (3, 4):
-        arr = arr[:, :, :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)
-    if arr.ndim != 2:
-        raise ValueError(f"image must be a 2-D grey image (H, W), got shape {arr.shape}")
-    if min(arr.shape) < 16:
-        raise ValueError(f"image is too small ({arr.shape})")
-    return arr.astype(np.float32)
-
-
-def _normalise(img: np.ndarray) -> tuple[np.ndarray, str]:
-    """Float32 image scaled so the dark and bright extremes map to 0 and 1."""
-    sample = img[::4, ::4]
-    finite = np.isfinite(sample)
-    if not finite.any():
-        return np.zeros_like(img), "image has no finite pixels"
-    lo, hi = np.percentile(sample[finite], [0.5, 99.5])
-    if not hi > lo:
-        return np.zeros_like(img), "image is blank (no contrast)"
-    out = (np.nan_to_num(img, nan=float(lo)) - np.float32(lo)) / np.float32(hi - lo)
-    return np.clip(out, -0.25, 1.25).astype(np.float32), ""
+_grey = grey
+_normalise = normalise
 
 
 def _failed(board, message: str) -> DetectionResult:

@@ -1,0 +1,122 @@
+"""Capture folders: which image files make up which view, and reading them.
+
+Per board pose (view) `k = 0, 1, 2, ...` a folder holds either
+
+- one image with the board and the laser line: `view_<k>.<ext>` (layout `"single"`), or
+- a pair: `view_<k>_board.<ext>` (laser off) and `view_<k>_stripe.<ext>` (laser on, the
+  board in the same pose; layout `"pair"`),
+
+with `<ext>` one of `png`, `jpg`, `jpeg`, `tif`, `tiff`, `bmp` (any case). Views are
+sorted by the number `k` (view_2 before view_10); the numbers need not be contiguous.
+The two layouts may be mixed across views, not within one view. Any other file is
+ignored (and listed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+
+import cv2
+import numpy as np
+
+__all__ = ["IMAGE_SUFFIXES", "CaptureView", "find_captures", "natural_key", "read_image"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+_VIEW = re.compile(r"^view_(\d+)(?:_(board|stripe))?\.(png|jpe?g|tiff?|bmp)$", re.IGNORECASE)
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders embedded numbers by value: `f2 < f10`."""
+    return [(0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in re.split(r"(\d+)", name)]
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureView:
+    """The image files of one view.
+
+    **Fields:**
+    - `view`: the number `k` in the file names.
+    - `board`: path of the image the target is detected in (`view_<k>.<ext>` or
+      `view_<k>_board.<ext>`); None when only a stripe image exists.
+    - `stripe`: path of the image the laser line is extracted from (the same file as
+      `board` in the single-image layout); None when a pair lacks its stripe image.
+    """
+
+    view: int
+    board: str | None
+    stripe: str | None
+
+    @property
+    def layout(self) -> str:
+        return "single" if self.board is not None and self.board == self.stripe else "pair"
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The distinct file names of the view (board first)."""
+        out = []
+        for p in (self.board, self.stripe):
+            if p is not None and os.path.basename(p) not in out:
+                out.append(os.path.basename(p))
+        return tuple(out)
+
+
+def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[str]]:
+    """The views of a capture folder (see the module doc) and the names ignored.
+
+    **Returns:** `(views, ignored)`: views sorted by number, ignored file names in
+    natural order. Raises `ValueError` naming the files when a view has two images of one
+    kind (e.g. `view_3.png` and `view_3.jpg`, or `view_3.png` and `view_3_board.png`),
+    and `NotADirectoryError`/`FileNotFoundError` for a missing folder.
+    """
+    folder = os.fspath(folder)
+    if not os.path.exists(folder):
+        raise FileNotFoundError(f"capture folder {folder} not found")
+    if not os.path.isdir(folder):
+        raise NotADirectoryError(f"{folder} is not a folder")
+    slots: dict[int, dict[str, str]] = {}
+    ignored = []
+    for name in sorted(os.listdir(folder), key=natural_key):
+        path = os.path.join(folder, name)
+        m = _VIEW.match(name)
+        if m is None or not os.path.isfile(path):
+            ignored.append(name)
+            continue
+        k, kind = int(m.group(1)), (m.group(2) or "single").lower()
+        slot = slots.setdefault(k, {})
+        clash = slot.get(kind) or (slot.get("single") if kind != "single" else None)
+        if clash is None and kind == "single":
+            clash = slot.get("board") or slot.get("stripe")
+        if clash is not None:
+            raise ValueError(
+                f"view {k} has two images for one purpose in {folder}: "
+                f"{os.path.basename(clash)} and {name} (keep one)"
+            )
+        slot[kind] = path
+    views = []
+    for k, slot in sorted(slots.items()):
+        if "single" in slot:
+            views.append(CaptureView(k, slot["single"], slot["single"]))
+        else:
+            views.append(CaptureView(k, slot.get("board"), slot.get("stripe")))
+    return views, ignored
+
+
+def read_image(path: str) -> np.ndarray | None:
+    """An image file as stored: `(H, W)` grey or `(H, W, 3)` BGR (alpha dropped), 8 or
+    16 bits (EXIF orientation is ignored: pixels stay in sensor order). None when the file
+    cannot be read or decoded."""
+    try:
+        image = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        return None
+    if image is None or image.size == 0:
+        return None
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = image[:, :, :3]
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim not in (2, 3):
+        return None
+    return image

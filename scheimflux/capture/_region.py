@@ -1,0 +1,136 @@
+"""The board region of a view, and the one place where detect extracts board stripes.
+
+`board_region` is the part of the image where the laser line lies on the board: the
+convex hull of the detected target points and of the target's outer edge (mapped into
+the image by the homography of the detected points, so the outer squares and a board
+partly outside the image count), grown by a margin. `board_stripe` extracts the laser
+line inside it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+__all__ = ["board_region", "board_stripe", "grey_native", "laser_channel", "laser_free"]
+
+
+def laser_free(image: Any) -> np.ndarray:
+    """The image for target detection: a colour image's per-pixel minimum over its
+    channels (a laser of one colour adds light to one or two channels, a grey board
+    reflects room light into all three); a grey image as it is."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] >= 3:
+        return img[:, :, :3].min(axis=2)
+    return img
+
+
+def laser_channel(image: Any) -> np.ndarray:
+    """The image for stripe extraction: for colour, the per-pixel spread between the
+    brightest and the darkest channel (the laser's own light, without the grey room light
+    on the board); a grey image as it is."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] >= 3:
+        c = img[:, :, :3]
+        return (c.max(axis=2) - c.min(axis=2)).astype(img.dtype)
+    return grey_native(img)
+
+
+def grey_native(image: Any) -> np.ndarray:
+    """A grey copy in the image's own type: `(H, W)` as is, BGR through `cv2.cvtColor`."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        if img.dtype not in (np.uint8, np.uint16, np.float32):
+            img = img.astype(np.float32)
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        return cv2.cvtColor(img, code)
+    return img
+
+
+def board_region(
+    corners_px: np.ndarray,
+    shape: tuple[int, int],
+    *,
+    margin_px: float = 10.0,
+    board_xy_mm: np.ndarray | None = None,
+    extent_mm: tuple[float, float, float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The board region as a mask and its outline.
+
+    **Arguments:**
+    - `corners_px`: `(M, 2)` detected points (NaN rows ignored).
+    - `shape`: `(H, W)` of the image.
+    - `margin_px`: growth of the hull (px).
+    - `board_xy_mm`, `extent_mm`: the points' board coordinates `(M, 2)` and the board's
+      `(x_min, x_max, y_min, y_max)`; with both, the board's outline joins the hull.
+
+    **Returns:** `(mask, polygon)`: `(H, W)` bool, and the hull `(P, 2)` px (before the
+    margin). An empty mask when fewer than 3 points are finite.
+    """
+    H, W = int(shape[0]), int(shape[1])
+    uv = np.asarray(corners_px, np.float64).reshape(-1, 2)
+    ok = np.all(np.isfinite(uv), axis=1)
+    mask = np.zeros((H, W), np.uint8)
+    if ok.sum() < 3:
+        return mask.astype(bool), np.zeros((0, 2))
+    pts = uv[ok]
+    if board_xy_mm is not None and extent_mm is not None and ok.sum() >= 4:
+        Hm, _ = cv2.findHomography(np.asarray(board_xy_mm, np.float64)[ok], pts, 0)
+        if Hm is not None:
+            x0, x1, y0, y1 = extent_mm
+            outline = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], np.float64)
+            edge = cv2.perspectiveTransform(outline[None], Hm)[0]
+            if np.all(np.isfinite(edge)) and np.abs(edge).max() < 10 * (H + W):
+                pts = np.concatenate([pts, edge])
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    shift = 4  # fixed-point bits of fillConvexPoly
+    poly = np.rint((hull) * (1 << shift)).astype(np.int32)
+    cv2.fillConvexPoly(mask, poly, 1, cv2.LINE_8, shift)
+    m = int(round(max(0.0, float(margin_px))))
+    if m > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
+        mask = cv2.dilate(mask, kernel)
+    return mask.astype(bool), hull
+
+
+def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None):
+    """The laser line on the board: `extract_stripe` on the grey image (for colour, the
+    laser's channel spread, `laser_channel`) with every pixel outside `mask` replaced by
+    a heavily blurred copy; centres within a stripe width of the region's edge are
+    marked outside.
+
+    This adapter is the single place where `detect` extracts board stripes; it is meant
+    to be replaced by the stripe module's own mask support.
+
+    **Returns:** `(StripeResult, inside)`: `inside` `(N,)` bool marks the centres on the
+    board region. Raises `ValueError` when nothing can be extracted.
+    """
+    from ..stripe import extract_stripe
+
+    img = laser_channel(image)
+    if not np.any(mask):
+        raise ValueError("empty board region")
+    # outside the region: a heavily blurred copy, so that the region's edge is no step
+    # (a step would look like a line's flank); centres within a stripe width of the edge
+    # are dropped all the same
+    w = 5.0 if width_px is None else float(width_px)
+    work = img.astype(np.float32)
+    smooth = cv2.GaussianBlur(work, (0, 0), 4.0 * w)
+    work = np.where(mask, work, smooth)
+    if np.issubdtype(img.dtype, np.integer):
+        work = np.rint(work).astype(img.dtype)
+    result = extract_stripe(work, width_px=width_px)
+    edge = int(np.ceil(w))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
+    core = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
+    uv = result.uv
+    inside = np.zeros(len(uv), bool)
+    fin = np.all(np.isfinite(uv), axis=1)
+    iu = np.clip(np.rint(uv[fin, 0]).astype(int), 0, mask.shape[1] - 1)
+    iv = np.clip(np.rint(uv[fin, 1]).astype(int), 0, mask.shape[0] - 1)
+    inside[fin] = core[iv, iu]
+    return result, inside

@@ -1,0 +1,248 @@
+"""Circle-grid targets, symmetric and asymmetric: geometry and detection through OpenCV's
+`findCirclesGrid` with a blob detector sized to the image, dark or light circles.
+
+Board frame (mm): x along a row of circles, y from one row to the next, z = 0 on the
+board, +z into the board (away from a camera that sees the printed side).
+
+- Symmetric grid, `cols × rows` circles (OpenCV's `patternSize = (cols, rows)`):
+  circle `k` at `(i s, j s, 0)` with `i = k % cols`, `j = k // cols`, `s = spacing_mm`.
+- Asymmetric grid (OpenCV's `CALIB_CB_ASYMMETRIC_GRID`, its calibration sample's
+  layout): `cols` circles per row, `rows` rows, circle `k` at `((2 i + j % 2) s, j s, 0)`;
+  rows are `s` apart, circles within a row `2 s` apart, diagonal neighbours `s √2`.
+
+Point order: a grid of circles looks the same after some rotations (180° for a
+rectangular symmetric grid, 90° for a square one; an asymmetric grid's own symmetries),
+and no colour tells them apart. The order kept is (1) the handedness of a camera that
+sees the printed side (`mirrored=True` for a mirror image), then (2) among the orders
+that remain, the one whose circle 0 is nearest the image's top-left corner. This
+changes only each view's board pose, never the camera calibrated from it; the message
+says when the choice was needed.
+
+Circle centres are the blob detector's centroids: under perspective the centre of a
+circle's image is not the image of its centre. The shift grows with the square of the
+circle's size over its distance; keep the circles small (diameter about a third of the
+spacing or less) for sub-0.05 px centres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ._result import DetectionResult, grey_float, to_uint8
+
+__all__ = ["CircleGrid", "detect_circles"]
+
+
+@dataclasses.dataclass(frozen=True)
+class CircleGrid:
+    """A grid of circles (see the module doc for the frame and the point order).
+
+    **Arguments:**
+    - `cols`, `rows`: circles per row and number of rows.
+    - `spacing_mm`: `s`, the distance between neighbouring circles (symmetric) or
+      between neighbouring rows (asymmetric).
+    - `diameter_mm`: circle diameter (mm).
+    - `asymmetric`: OpenCV's asymmetric layout.
+    """
+
+    cols: int
+    rows: int
+    spacing_mm: float
+    diameter_mm: float
+    asymmetric: bool = False
+
+    def __post_init__(self):
+        for name in ("cols", "rows"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 2:
+                raise ValueError(f"circle grid {name} must be an integer >= 2, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        s, d = float(self.spacing_mm), float(self.diameter_mm)
+        if not (math.isfinite(s) and s > 0):
+            raise ValueError(f"spacing_mm must be a positive number, got {self.spacing_mm!r}")
+        nearest = s * (math.sqrt(2.0) if self.asymmetric else 1.0)
+        if not (math.isfinite(d) and 0 < d < nearest):
+            raise ValueError(
+                f"diameter_mm must be positive and below the nearest-neighbour distance "
+                f"{nearest:g} mm, got {self.diameter_mm!r}"
+            )
+        object.__setattr__(self, "spacing_mm", s)
+        object.__setattr__(self, "diameter_mm", d)
+        object.__setattr__(self, "asymmetric", bool(self.asymmetric))
+
+    def __str__(self) -> str:
+        kind = "asymmetric" if self.asymmetric else "symmetric"
+        return (
+            f"{kind} circle grid {self.cols}x{self.rows}, spacing {self.spacing_mm:g} mm, "
+            f"diameter {self.diameter_mm:g} mm"
+        )
+
+    @property
+    def kind(self) -> str:
+        return "acircles" if self.asymmetric else "circles"
+
+    @property
+    def size(self) -> str:
+        return f"{self.cols}x{self.rows}"
+
+    @property
+    def num_corners(self) -> int:
+        return self.cols * self.rows
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def points_mm(self) -> np.ndarray:
+        """Circle centres, board frame, `(cols · rows, 3)`, row by row."""
+        k = np.arange(self.num_corners)
+        i, j = k % self.cols, k // self.cols
+        x = (2 * i + j % 2) if self.asymmetric else i
+        xy = np.stack([x * self.spacing_mm, j * self.spacing_mm], axis=1).astype(np.float64)
+        return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+
+    @property
+    def centre_mm(self) -> np.ndarray:
+        p = self.points_mm
+        return 0.5 * (p.min(axis=0) + p.max(axis=0))
+
+    @property
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        """`(x_min, x_max, y_min, y_max)` of the board: the circles plus one spacing."""
+        p, s = self.points_mm, self.spacing_mm
+        return (p[:, 0].min() - s, p[:, 0].max() + s, p[:, 1].min() - s, p[:, 1].max() + s)
+
+    def pattern(self, px_per_mm: float, *, dark_circles: bool = True) -> np.ndarray:
+        """The printed pattern over `extent_mm`, uint8 (255 white), anti-aliased circles."""
+        x0, x1, y0, y1 = self.extent_mm
+        w, h = int(round((x1 - x0) * px_per_mm)), int(round((y1 - y0) * px_per_mm))
+        ss = 4  # sub-texels per texel side
+        img = np.zeros((h * ss, w * ss), np.uint8)
+        shift = 4  # fixed-point bits of cv2.circle
+        scale = px_per_mm * ss * (1 << shift)
+        for x, y, _ in self.points_mm:
+            # texel (r, c) covers x in [c, c + 1] / ppm: a centre at x mm is at x * ppm - 0.5
+            cu = ((x - x0) * px_per_mm * ss - 0.5) * (1 << shift)
+            cv = ((y - y0) * px_per_mm * ss - 0.5) * (1 << shift)
+            r = 0.5 * self.diameter_mm * scale
+            cv2.circle(img, (int(round(cu)), int(round(cv))), int(round(r)), 255, -1,
+                       cv2.LINE_8, shift)  # fmt: skip
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        return img if not dark_circles else 255 - img
+
+
+def _blob_detector(shape: tuple[int, int], n: int, light: bool):
+    p = cv2.SimpleBlobDetector_Params()
+    h, w = shape
+    p.filterByColor = True
+    p.blobColor = 255 if light else 0
+    p.filterByArea = True
+    p.minArea = 6.0  # a circle of ~3 px diameter
+    p.maxArea = float(max(50.0, 0.5 * h * w / max(n, 1)))  # a grid cell's share of the image
+    p.minDistBetweenBlobs = 2.0
+    p.filterByConvexity = True
+    p.minConvexity = 0.8
+    p.filterByInertia = True
+    p.minInertiaRatio = 0.05  # ellipses of boards tilted by up to ~85°
+    p.filterByCircularity = False
+    p.minThreshold, p.maxThreshold, p.thresholdStep = 20.0, 235.0, 10.0
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def _symmetries(xy: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Index permutations that map the point set onto itself (rotations by 90° k and
+    reflections about its centre), with the determinant (±1) of each."""
+    c = xy.mean(axis=0)
+    d = xy - c
+    scale = float(np.abs(d).max()) or 1.0
+    out = []
+    for flip in (1.0, -1.0):
+        for k in range(4):
+            a = k * math.pi / 2
+            M = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+            M = M @ np.diag([1.0, flip])
+            q = d @ M.T
+            dist = np.linalg.norm(q[:, None, :] - d[None, :, :], axis=-1)
+            perm = dist.argmin(axis=1)
+            if dist[np.arange(len(d)), perm].max() < 1e-6 * scale and len(set(perm)) == len(d):
+                out.append((perm, float(np.linalg.det(M))))
+    return out
+
+
+def _handedness(xy: np.ndarray, uv: np.ndarray) -> tuple[float, float]:
+    """Sign of the board → image map's Jacobian at the centre, and the homography fit's
+    worst residual (px)."""
+    H, _ = cv2.findHomography(xy, uv, 0)
+    if H is None:
+        return 0.0, math.inf
+    c = xy.mean(axis=0)
+    eps = 1e-3 * float(np.ptp(xy, axis=0).max())
+    pts = np.array([c, c + [eps, 0.0], c + [0.0, eps]])[None]
+    q = cv2.perspectiveTransform(pts, H)[0]
+    du, dv = q[1] - q[0], q[2] - q[0]
+    fit = cv2.perspectiveTransform(xy[None], H)[0]
+    return float(np.sign(du[0] * dv[1] - du[1] * dv[0])), float(
+        np.linalg.norm(fit - uv, axis=1).max()
+    )
+
+
+def detect_circles(
+    image: Any, grid: CircleGrid, *, polarity: str = "auto", mirrored: bool = False
+) -> DetectionResult:
+    """Find the circle centres of `grid` in `image`.
+
+    **Arguments:**
+    - `image`: `(H, W)` grey or `(H, W, 3)` BGR image, 8- or 16-bit or float.
+    - `grid`: the [`CircleGrid`][].
+    - `polarity`: `"dark"` (dark circles on a light board), `"light"`, or `"auto"`
+      (dark first, then light).
+    - `mirrored`: the image is mirrored: keep the order of opposite handedness.
+
+    **Returns:** a [`DetectionResult`][] in the order of `grid.points_mm` (see the
+    module doc); all NaN when the grid was not found (OpenCV finds all circles or none).
+    """
+    if polarity not in ("auto", "dark", "light"):
+        raise ValueError(f"polarity must be 'auto', 'dark' or 'light', got {polarity!r}")
+    norm, problem = grey_float(image)
+    if problem:
+        return DetectionResult.failed(grid.num_corners, problem)
+    img8 = to_uint8(norm)
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if grid.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
+    uv = None
+    for light in {"auto": (False, True), "dark": (False,), "light": (True,)}[polarity]:
+        det = _blob_detector(img8.shape, grid.num_corners, light)
+        found, centres = cv2.findCirclesGrid(img8, grid.pattern_size, None, flags, det)
+        if found and centres is not None and len(centres) == grid.num_corners:
+            uv = np.asarray(centres, np.float64).reshape(-1, 2)
+            break
+    what = f"no {grid.size} {'asymmetric ' if grid.asymmetric else ''}circle grid found"
+    if uv is None:
+        return DetectionResult.failed(
+            grid.num_corners,
+            what + " (all circles and a plain border around them must be visible)",
+        )
+    xy = grid.points_mm[:, :2]
+    sign, worst = _handedness(xy, uv)
+    spacing = float(np.linalg.norm(uv[1] - uv[0]))
+    if not worst < 0.25 * spacing:
+        return DetectionResult.failed(
+            grid.num_corners, what + f": OpenCV's order does not fit the grid ({worst:.1f} px)"
+        )
+    cands = []
+    for perm, d in _symmetries(xy):
+        if (sign * d > 0) == mirrored:
+            continue
+        out = np.empty_like(uv)
+        out[perm] = uv  # the point OpenCV labels k is board point perm[k]
+        cands.append(out)
+    if not cands:
+        return DetectionResult.failed(grid.num_corners, what + ": handedness unresolved")
+    best = min(cands, key=lambda c: float(np.hypot(*c[0])))
+    note = "" if len(cands) == 1 else "point 0 taken nearest the image's top-left (symmetric grid)"
+    return DetectionResult(np.ascontiguousarray(best), True, note)

@@ -1,0 +1,80 @@
+"""The result of detecting a target in one image, and the image conversions the detectors
+share (grey, robust normalisation, 8-bit copy)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+__all__ = ["DetectionResult"]
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectionResult:
+    """The target points found in one image.
+
+    **Fields:**
+    - `corners_px`: `(M, 2)` float64 pixels in the order of the target's `points_mm`;
+      NaN rows where a point was not found (all of them when `found` is False).
+    - `found`: whether the target was detected (enough points to use the view).
+    - `message`: why detection failed, or notes on a successful one (may be empty).
+    """
+
+    corners_px: np.ndarray
+    found: bool
+    message: str = ""
+
+    @property
+    def mask(self) -> np.ndarray:
+        """`(M,)` bool: points with finite pixel coordinates."""
+        return np.all(np.isfinite(self.corners_px), axis=1)
+
+    @classmethod
+    def failed(cls, n: int, message: str) -> DetectionResult:
+        return cls(np.full((n, 2), np.nan), False, message)
+
+
+def grey(image: Any) -> np.ndarray:
+    """Float32 grey image from `(H, W)`, `(H, W, 1)`, BGR or BGRA input (any bit depth).
+
+    Raises `ValueError` for a non-numeric, non-2-D or tiny image."""
+    arr = np.asarray(image)
+    if arr.dtype == np.bool_ or not (
+        np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
+    ):
+        raise ValueError(f"image must hold integer or float grey levels, got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    elif arr.ndim == 3 and arr.shape[2] in (3, 4):
+        arr = arr[:, :, :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)
+    if arr.ndim != 2:
+        raise ValueError(f"image must be a 2-D grey image (H, W), got shape {arr.shape}")
+    if min(arr.shape) < 16:
+        raise ValueError(f"image is too small ({arr.shape})")
+    return arr.astype(np.float32)
+
+
+def normalise(img: np.ndarray) -> tuple[np.ndarray, str]:
+    """Float32 image scaled so the dark and bright extremes (0.5 and 99.5 percentiles)
+    map to 0 and 1, and a message when the image has no contrast."""
+    sample = img[::4, ::4]
+    finite = np.isfinite(sample)
+    if not finite.any():
+        return np.zeros_like(img), "image has no finite pixels"
+    lo, hi = np.percentile(sample[finite], [0.5, 99.5])
+    if not hi > lo:
+        return np.zeros_like(img), "image is blank (no contrast)"
+    out = (np.nan_to_num(img, nan=float(lo)) - np.float32(lo)) / np.float32(hi - lo)
+    return np.clip(out, -0.25, 1.25).astype(np.float32), ""
+
+
+def grey_float(image: Any) -> tuple[np.ndarray, str]:
+    """`normalise(grey(image))`."""
+    return normalise(grey(image))
+
+
+def to_uint8(norm: np.ndarray) -> np.ndarray:
+    """8-bit copy of a normalised image (0 → 0, 1 → 255)."""
+    return np.rint(np.clip(norm, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -1,0 +1,176 @@
+"""Capture folders → observations: layouts, rendered captures of every target in both
+layouts (JPEG, colour) against the projected truth, dropped views, previews, CLI errors."""
+
+import types
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_render_board import _focus_pose
+
+import scheimflux as sf
+from scheimflux.capture import detect_captures, find_captures
+from scheimflux.cli._main import main
+from scheimflux.io import read_observations
+from scheimflux.simulate._images import write_scene_images
+from scheimflux.targets import CharucoBoard, Checkerboard, CircleGrid
+
+CROP = np.array([400.0, 300.0])  # 800 x 600 crop of the paper's sensor: fast renders
+
+
+class _CropRig:
+    """The thick-lens camera on an 800 x 600 crop, with the `Rig` interface the image
+    writer uses (`sensor_size`, `project`)."""
+
+    sensor_size = (800, 600)
+
+    def __init__(self, cam):
+        self.cam = cam
+
+    def project(self, X):
+        uv = np.asarray(self.cam.project(jnp.asarray(np.asarray(X, np.float64)))) - CROP
+        return uv, np.all(np.isfinite(uv), axis=1)
+
+
+def _scene(cam, target, rots=(183.0,)):
+    """Poses on the focus plane, truth corners and a laser line across the board's
+    middle (its exact pixels), as `write_scene_images` wants them."""
+    rig = _CropRig(cam)
+    poses, corners, stripes = [], [], []
+    x0, x1, y0, y1 = target.extent_mm
+    for rot in rots:
+        pose = _focus_pose(cam, target, rot_deg=rot)
+        poses.append(pose)
+
+        def to_px(xy, pose=pose):
+            X = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+            return rig.project(np.asarray(pose.apply(jnp.asarray(X))))[0]
+
+        corners.append(to_px(target.points_mm[:, :2]))
+        xs = np.linspace(x0, x1, 400)
+        line = np.stack([xs, np.full_like(xs, 0.5 * (y0 + y1) + 0.37 * (y1 - y0) / 8)], axis=1)
+        stripes.append(to_px(line))
+    truth = types.SimpleNamespace(board_poses=poses, stripe_px=stripes, scan_px=[])
+    return rig, truth, np.stack(corners)
+
+
+def _near_line(uv, line):
+    """Distance of each point to the polyline `line` (exact point-to-segment distance)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.einsum("nsk,sk->ns", uv[:, None, :] - a[None], ab) / np.einsum("sk,sk->s", ab, ab)
+    foot = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
+    return np.linalg.norm(uv[:, None, :] - foot, axis=-1).min(axis=1)
+
+
+@pytest.fixture(scope="module")
+def cam():
+    return sf.paper_thick_lens()
+
+
+def test_find_captures_layouts(tmp_path):
+    for name in ("view_0.jpg", "view_1_board.PNG", "view_1_stripe.png", "view_10_board.tif",
+                 "view_2_stripe.bmp", "notes.txt", "view_x.png"):  # fmt: skip
+        (tmp_path / name).write_bytes(b"")
+    views, ignored = find_captures(tmp_path)
+    assert [(v.view, v.layout, v.names) for v in views] == [
+        (0, "single", ("view_0.jpg",)),
+        (1, "pair", ("view_1_board.PNG", "view_1_stripe.png")),
+        (2, "pair", ("view_2_stripe.bmp",)),
+        (10, "pair", ("view_10_board.tif",)),
+    ]
+    assert views[2].board is None and views[3].stripe is None
+    assert ignored == ["notes.txt", "view_x.png"]
+    (tmp_path / "view_0_board.png").write_bytes(b"")
+    with pytest.raises(ValueError, match="view 0 has two images .*view_0.jpg and view_0_board"):
+        find_captures(tmp_path)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        find_captures(tmp_path / "missing")
+
+
+# Tolerances: target points as in tests/test_targets.py (0.1 px; JPEG quality 95 adds a
+# few hundredths, and the laser crossing the board in the single-image layout is removed
+# from colour images by the channel minimum). Stripe centres: the Gaussian line is exact
+# in the pair layout (0.1 px); in the single layout the board's albedo modulates it
+# (dark squares: 10x weaker), so only points on the line are required, within 0.5 px.
+@pytest.mark.parametrize(
+    "target, layout, ext, colour, tol",
+    [
+        (Checkerboard(7, 6, 0.2), "pair", "png", False, 0.1),
+        (CharucoBoard(8, 6, 0.2, 0.14), "single", "jpg", True, 0.15),
+        (CircleGrid(7, 6, 0.2, 0.08), "single", "png", False, 0.05),
+    ],
+    ids=["checkerboard-pair-png", "charuco-single-jpg-colour", "circles-single-png"],
+)
+def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
+    rig, truth, corners = _scene(cam, target)
+    images = tmp_path / "images"
+    write_scene_images(images, rig, target, truth, layout=layout, ext=ext, colour=colour, seed=1)
+    obs, report = detect_captures(images, target, preview_dir=tmp_path / "preview")
+    assert report.kept == [0] and not report.dropped
+    v = obs.views[0]
+    assert v.source == ((f"view_0.{ext}",) if layout == "single" else
+                        (f"view_0_board.{ext}", f"view_0_stripe.{ext}"))  # fmt: skip
+    assert v.corner_mask.all()
+    assert np.hypot(*(v.corners_px - corners[0]).T).max() <= tol
+    line = truth.stripe_px[0]
+    span = np.ptp(line[:, 0])
+    # the rendered line stops dead at the pattern's edge; Steger's centres within a few
+    # pixels of a line's end are pulled off it, so the last 6 px at each end are not judged
+    u = v.stripe_px[:, 0]
+    inner = (u > line[:, 0].min() + 6) & (u < line[:, 0].max() - 6)
+    d = _near_line(v.stripe_px[inner], line)
+    if layout == "pair":
+        assert len(v.stripe_px) > 0.9 * span and d.max() < 0.1, (len(v.stripe_px), d.max())
+    else:
+        on = d < 0.5
+        assert on.sum() > 0.3 * span and on.mean() > 0.9, (on.sum(), on.mean())
+    preview = cv2.imread(str(tmp_path / "preview" / "view_0_preview.png"))
+    assert preview.shape == (600, 800, 3)
+    assert obs.pixel_pitch_mm is None
+
+
+def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
+    board = CharucoBoard(8, 6, 0.2, 0.14)
+    rig, truth, _ = _scene(cam, board, rots=(183.0, 190.0))
+    images = tmp_path / "images"
+    write_scene_images(images, rig, board, truth, layout="pair", seed=2)
+    cv2.imwrite(str(images / "view_2_board.png"), np.full((600, 800), 90, np.uint8))
+    out, prev = tmp_path / "obs.json", tmp_path / "prev"
+    argv = ["detect", str(images), "--target", "charuco", "--board", "8x6", "--square-mm",
+            "0.2", "--marker-mm", "0.14", "--out", str(out), "--preview", str(prev),
+            "--pixel-pitch-mm", "0.0044", "0.0044"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    cap = capsys.readouterr()
+    assert "view 2 (view_2_board.png) dropped: image is blank" in cap.err
+    assert "found in 2 of 3 view(s)" in cap.out and "3 preview(s)" in cap.out
+    obs = read_observations(out)
+    assert len(obs.views) == 2 and [d.view for d in obs.dropped] == [2]
+    np.testing.assert_allclose(obs.board_points_mm, board.points_mm)
+    assert sorted(p.name for p in prev.iterdir()) == [f"view_{k}_preview.png" for k in range(3)]
+    # previews are not replaced without --overwrite (and then nothing is written)
+    out.unlink()
+    assert main(argv) == 1
+    assert "view_0_preview.png exists; pass --overwrite" in capsys.readouterr().err
+    assert not out.exists()
+
+    base = ["detect", str(images), "--board", "8x6", "--square-mm", "0.2", "--out", str(out)]
+    bad = [
+        (["--marker-mm", "0.1"], "--marker-mm is for --target charuco"),
+        (["--target", "charuco", "--dictionary", "DICT_9X9"], "unknown ArUco dictionary"),
+        (["--target", "charuco", "--marker-mm", "0.3"], "marker_mm must be positive and smaller"),
+        (["--circle-diameter-mm", "0.1"], "--circle-diameter-mm is for --target circles"),
+        (["--pixel-pitch-mm", "0", "1"], "--pixel-pitch-mm must be positive"),
+        (["--min-points", "2"], "--min-points must be at least 4"),
+    ]
+    for extra, message in bad:
+        assert main(base + extra) == 1
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+        assert not out.exists()
+    (images / "view_0.png").write_bytes(b"")  # clashes with view_0_board.png
+    assert main(base) == 1
+    assert "view 0 has two images for one purpose" in capsys.readouterr().err
+    assert main(base[:1] + [str(tmp_path / "none")] + base[2:]) == 1
+    assert "is not a folder" in capsys.readouterr().err
