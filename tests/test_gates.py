@@ -195,3 +195,15 @@ def test_quality_fields_are_json_ready():
     d = g.to_dict()
     assert d["value"] is None and d["passed"] is False
     assert dataclasses.asdict(g)["name"] == "stripe"
+
+
+def test_board_plane_angles():
+    from scheimflux.calibrate._gates import board_plane_angles_deg
+
+    n = np.array([0.0, 0.5, 1.0]) / 3.0  # a laser plane n · X = 1 (any scale)
+    a = math.radians(0.5)
+    u = n / np.linalg.norm(n)
+    w = np.cross(u, [1.0, 0.0, 0.0])
+    w /= np.linalg.norm(w)
+    boards = np.stack([u, -u, math.cos(a) * u + math.sin(a) * w, w])
+    np.testing.assert_allclose(board_plane_angles_deg(boards, n), [0.0, 0.0, 0.5, 90.0], atol=1e-6)

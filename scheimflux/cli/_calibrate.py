@@ -6,8 +6,7 @@ separate steps, then by default one joint Levenberg-Marquardt solve of every blo
 prints a summary and writes CAL.json (scheimflux.calibration/1).
 
 The defaults are the most accurate choice: the thick-lens model with radial-tangential
-distortion, solved jointly, with a Huber loss (--robust) and a final rejection pass
-(--reject). An unconverged solve is an error and writes nothing unless
+distortion, solved jointly, then a final rejection pass (--reject) of outliers. An unconverged solve is an error and writes nothing unless
 --allow-unconverged is given; a calibration that fails a quality gate (reprojection RMS
 above 3x the stated corner sigma, stripe or gauge RMS above 3x the stated stripe sigma,
 the axis point off the sensor, heavy-tailed residuals, more than 10 % outliers) is an
@@ -67,8 +66,9 @@ def register(subparsers) -> None:
         action="extend",
         metavar="PATH",
         default=None,
-        help="parameters held fixed, e.g. camera.dx camera.dy camera.f; REPLACES the "
-        "defaults (pixel pitch, f and a tilt gauge; the summary lists them)",
+        help="parameters held fixed, e.g. camera.dx camera.dy camera.f, stage.R_m_c, "
+        "stage.t_m_c, eccentricity; REPLACES the defaults (pixel pitch, f and a tilt "
+        "gauge; the summary lists them)",
     )
     p.add_argument(
         "--sigma-corner-px",
@@ -85,10 +85,10 @@ def register(subparsers) -> None:
     p.add_argument(
         "--robust",
         type=float,
-        default=3.0,
+        default=None,
         metavar="K",
-        help="Huber loss with threshold K sigma against outliers; 0: plain least squares "
-        "(default: %(default)s)",
+        help="Huber loss with threshold K sigma against outliers (default: off; the "
+        "rejection pass, --reject, leaves outliers out)",
     )
     p.add_argument(
         "--reject",
