@@ -867,6 +867,7 @@ def calibrate(
     params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, sigma_stripe_mm=sigma_mm, robust=robust)
     freeze = tuple(DEFAULT_FREEZE[(model, cam_cal.init)] if freeze is None else freeze)
+    start = params
     if joint:
         fn = joint_residuals if stage is not None else camera_plane_residuals
         extra = ("stage.delta_omega",) if stage is not None else ()
@@ -885,7 +886,9 @@ def calibrate(
         )
         if joint and any(int(m.sum()) for m in masks):
             # the final rejection pass: same shapes (weights 0), so the compiled solver
-            # is reused; one more solve from the optimum without the outliers
+            # is reused. The joint problem is solved again from the same start (the
+            # separate steps) without the outliers: from the contaminated optimum LM
+            # crept along the weak depth valley for 300 steps without converging.
             data = eqx.tree_at(
                 lambda d: (d.corner_w, d.stripe_w, d.gauge_w),
                 data,
@@ -895,7 +898,7 @@ def calibrate(
                 ),
             )
             fit = least_squares(
-                fn, params, data, freeze=freeze + extra, max_steps=max_steps, throw=throw
+                fn, start, data, freeze=freeze + extra, max_steps=max_steps, throw=throw
             )
             params = fit.params
             fits["joint"] = fit

@@ -104,6 +104,8 @@ class Quality:
 
     def summary(self) -> str:
         r = self.rejected
+        k = r.get("threshold_sigma")
+        beyond = f"beyond {k:g} robust σ" if k is not None else "no rejection pass:"
         lines = [
             "quality gates: " + ("passed" if self.passed else "FAILED"),
             *(
@@ -114,8 +116,7 @@ class Quality:
             "  left out: outside the sensor "
             f"{r.get('corners_outside_sensor', 0)} corners, "
             f"{r.get('stripe_outside_sensor', 0)} stripe and "
-            f"{r.get('gauge_outside_sensor', 0)} gauge pixels; beyond "
-            f"{r.get('threshold_sigma', REJECT_SIGMA):g} robust σ "
+            f"{r.get('gauge_outside_sensor', 0)} gauge pixels; {beyond} "
             f"{r.get('corner_outliers', 0)} corners, {r.get('stripe_outliers', 0)} stripe "
             f"and {r.get('gauge_outliers', 0)} gauge points",
         ]

@@ -64,10 +64,16 @@ def _check_rank(H, params, spec) -> None:
     if nulls:
         lam, comps = nulls[0]
         names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
+        # the system parameters (not the per-view poses) in every null direction
+        others = sorted(
+            {lab for _, cs in nulls for lab, _ in cs if not lab.startswith("board_poses")}
+            - {lab for lab, _ in comps}
+        )
+        more = f"; the others also involve {', '.join(others)}" if others else ""
         raise RankDeficientError(
             f"the data do not determine these free parameters together: {names} "
             f"(a null direction of the scaled Jacobian, eigenvalue {lam:.1e} × max; "
-            f"{len(nulls)} such direction(s)); freeze one of them"
+            f"{len(nulls)} such direction(s){more}); freeze one of them"
         )
 
 

@@ -6,13 +6,14 @@ separate steps, then by default one joint Levenberg-Marquardt solve of every blo
 prints a summary and writes CAL.json (scheimflux.calibration/1).
 
 The defaults are the most accurate choice: the thick-lens model with radial-tangential
-distortion, solved jointly, then a final rejection pass (--reject) of outliers. An unconverged solve is an error and writes nothing unless
---allow-unconverged is given; a calibration that fails a quality gate (reprojection RMS
-above 3x the stated corner sigma, stripe or gauge RMS above 3x the stated stripe sigma,
-the axis point off the sensor, heavy-tailed residuals, more than 10 % outliers) is an
-error and writes nothing unless --force is given. The summary and CAL.json hold the
-sigma of every free parameter, the warnings, the frozen set, the solve statistics, the
-gates and the counts of left-out observations.
+distortion, solved jointly, then a final rejection pass (--reject) of outliers. An
+unconverged solve is an error and writes nothing unless --allow-unconverged is given;
+pixels outside the sensor are left out and counted; a calibration that fails a quality
+gate (reprojection RMS above 3x the stated corner sigma, stripe or gauge RMS above 3x the
+stated stripe sigma, the axis point off the sensor, heavy-tailed residuals, more than
+10 % outliers) is an error and writes nothing unless --force is given. The summary and
+CAL.json hold the sigma of every free parameter, the warnings, the frozen set, the solve
+statistics, the gates and the counts of left-out observations.
 """
 
 from __future__ import annotations
@@ -253,18 +254,21 @@ def run(args) -> int:
         for name, fit in cal.fits.items()
         if not fit.converged
     ]
-    if failed and not args.allow_unconverged:
-        raise CLIError(
-            f"calibration did not converge: {', '.join(failed)}; no file written "
-            "(try --init closed-form, more views, or --allow-unconverged to write it anyway)"
-        )
     quality = getattr(cal, "quality", None)
+    refusals = []
+    if failed and not args.allow_unconverged:
+        refusals.append(
+            f"calibration did not converge: {', '.join(failed)} (try --init closed-form, "
+            "more views, or --allow-unconverged to write it anyway)"
+        )
     if quality is not None and not quality.passed and not args.force:
-        raise CLIError(
+        refusals.append(
             "calibration failed its quality gates: "
             + "; ".join(g.message for g in quality.failures)
-            + "; no file written (--force writes it anyway)"
+            + " (--force writes it anyway)"
         )
+    if refusals:
+        raise CLIError("; ".join(refusals) + "; no file written")
     write_json(out, doc, overwrite=args.overwrite)
     if failed:
         print(f"warning: wrote an UNCONVERGED calibration ({', '.join(failed)})")
