@@ -78,7 +78,7 @@ def test_calibrate_writes_file_and_summary(tmp_path, obs_file, fake_calibrate, c
     assert kwargs["model"] == "thick-lens" and kwargs["distortion"] == "radial-tangential"
     assert kwargs["joint"] is True and kwargs["init"] == "auto" and kwargs["freeze"] is None
     assert kwargs["sigma_corner_px"] == 0.03 and kwargs["sigma_stripe_px"] == 0.05
-    assert kwargs["robust"] is None
+    assert kwargs["robust"] is None and kwargs["reject"] == 5.0
     text = capsys.readouterr().out
     for expected in (
         "model: thick-lens",

@@ -31,6 +31,12 @@ from ._diagnostics import (
     residual_function as residual_function,
     residual_map as residual_map,
 )
+from ._gates import (
+    Gate as Gate,
+    Quality as Quality,
+    QualityError as QualityError,
+    screen_observations as screen_observations,
+)
 from ._model import (
     CalibrationData as CalibrationData,
     SystemParams as SystemParams,
@@ -45,9 +51,14 @@ from ._model import (
 from ._solve import (
     Fit as Fit,
     NotConvergedError as NotConvergedError,
+    RankDeficientError as RankDeficientError,
     free_spec as free_spec,
     jacobian as jacobian,
     least_squares as least_squares,
     parameter_labels as parameter_labels,
     refine as refine,
+)
+from ._uncertainty import (
+    fit_diagnostics as fit_diagnostics,
+    length_uncertainty as length_uncertainty,
 )

@@ -511,6 +511,12 @@ def point_uncertainty(
     This is the calibration error of each point, common to every scan; pixel noise of
     the measured stripe itself adds on top.
 
+    The σ is relative to the **camera frame** (its origin at the image-side principal
+    point): it is dominated by the frame's poorly determined placement along the optical
+    axis (the camera datum that e and z0 share), which moves every point alike and
+    cancels in distances and lengths. For what users measure, use
+    [`length_uncertainty`][] (covariance between points).
+
     **Arguments:**
     - `uv`: stripe pixels `(N, 2)`.
     - `frame`: `"camera"` or `"measurement"` (needs a stage and `frame_index`: an

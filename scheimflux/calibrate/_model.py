@@ -55,8 +55,22 @@ class CalibrationData(eqx.Module):
     robust: float | None = eqx.field(static=True, default=None)
 
 
+def padded_length(n: int, minimum: int = 8) -> int:
+    """`n` rounded up to one of 8 sizes per octave (≤ 12.5 % padding, at least `minimum`).
+
+    The compiled solvers are cached per array shape and never released, and each XLA
+    CPU executable holds thousands of memory mappings: with the exact number of stripe
+    points as the padded size, every new data set compiled a new solver and a process
+    doing many calibrations ran out of mappings (`vm.max_map_count`) and crashed.
+    Rounding to a few sizes per octave makes the shapes, and so the compilations, recur.
+    """
+    n = max(int(n), minimum)
+    step = 1 << max((n - 1).bit_length() - 4, 0)
+    return -(-n // step) * step
+
+
 def _pad(sets: list[np.ndarray], fill: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = max([len(s) for s in sets] + [1])
+    n = padded_length(max([len(s) for s in sets] + [1]))
     out = np.broadcast_to(fill, (len(sets), n, 2)).copy()
     w = np.zeros((len(sets), n))
     for i, s in enumerate(sets):
@@ -80,7 +94,9 @@ def make_data(
     corners = np.where(mask[..., None], corners, centre)
     stripe, stripe_w = _pad([v.stripe_px for v in obs.views], centre)
     if obs.stage is not None:
-        gauge, gauge_w = _pad(obs.stage.frames, centre)
+        frames = list(obs.stage.frames)  # padded with empty frames (weight 0) like the points
+        frames += [np.zeros((0, 2))] * (padded_length(len(frames)) - len(frames))
+        gauge, gauge_w = _pad(frames, centre)
         radius = obs.stage.gauge_radius_mm
     else:
         gauge, gauge_w, radius = np.broadcast_to(centre, (1, 1, 2)).copy(), np.zeros((1, 1)), 1.0

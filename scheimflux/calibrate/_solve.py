@@ -27,6 +27,56 @@ from jax.flatten_util import ravel_pytree
 from ._linear import BlockNormalCholesky, BlockStructure, block_layout, detect_rows
 
 
+class RankDeficientError(ValueError):
+    """The data cannot determine the free parameters together (a null direction of the
+    column-scaled Jacobian); the message names the parameters involved."""
+
+
+# An eigenvalue of the column-scaled JᵀJ below this fraction of the largest is a null
+# direction. JᵀJ is known to ~1e-16 relative (float64), so exact gauge freedoms show as
+# ~1e-16; the weakest real directions of a calibration (the boards' common depth
+# against the magnification) are ~1e-11.
+RANK_RTOL = 1e-13
+
+
+def null_directions(H, labels, *, rtol: float = RANK_RTOL, top: int = 5):
+    """The null directions of a normal matrix `H` (column-scaled to unit diagonal).
+
+    **Returns:** a list of `(relative eigenvalue, [(label, component), ...])`, the
+    components of each direction's unit vector above 0.1, largest first.
+    """
+    H = np.asarray(H, dtype=np.float64)
+    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    d = np.where(d > 0, d, 1.0)
+    lam, V = np.linalg.eigh(H / np.outer(d, d))
+    big = max(float(lam[-1]), 1e-300)
+    out = []
+    for k in np.flatnonzero(lam < rtol * big):
+        v = V[:, k]
+        order = np.argsort(-np.abs(v))[:top]
+        comps = [(labels[i], float(v[i])) for i in order if abs(v[i]) > 0.1]
+        out.append((float(lam[k] / big), comps))
+    return out
+
+
+def _check_rank(H, params, spec) -> None:
+    nulls = null_directions(H, parameter_labels(params, spec))
+    if nulls:
+        lam, comps = nulls[0]
+        names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
+        # the system parameters (not the per-view poses) in every null direction
+        others = sorted(
+            {lab for _, cs in nulls for lab, _ in cs if not lab.startswith("board_poses")}
+            - {lab for lab, _ in comps}
+        )
+        more = f"; the others also involve {', '.join(others)}" if others else ""
+        raise RankDeficientError(
+            f"the data do not determine these free parameters together: {names} "
+            f"(a null direction of the scaled Jacobian, eigenvalue {lam:.1e} × max; "
+            f"{len(nulls)} such direction(s){more}); freeze one of them"
+        )
+
+
 class NotConvergedError(RuntimeError):
     """Levenberg–Marquardt did not converge; `.fit` holds the last iterate."""
 
@@ -61,6 +111,9 @@ class Fit:
     time_s: float
     free_mask: object
     scale: jax.Array
+    normal_matrix: np.ndarray | None = None  # JᵀJ at the solution (physical units)
+    labels: tuple[str, ...] = ()  # the free parameters, in the order of its rows
+    n_observations: int = 0  # residuals with non-zero weight
 
     @property
     def rms(self) -> float:
@@ -68,18 +121,35 @@ class Fit:
         return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
 
+_FREEZE_ALIASES = {"stage.R_m_c": "stage.T_m_c.rotvec", "stage.t_m_c": "stage.T_m_c.translation"}
+
+
+def _is_module(node) -> bool:
+    return dataclasses.is_dataclass(node) and not isinstance(node, type)
+
+
 def free_spec(params, freeze: Sequence[str] = ()):
     """Filter spec with True on inexact-array leaves, False under each frozen path.
 
     Paths are attribute names joined by dots, e.g. `"camera.dx"`, `"board_poses"`,
-    `"stage.T_m_c.translation"`. Unknown paths raise `ValueError`.
+    `"stage.T_m_c.translation"` (`"stage.R_m_c"` and `"stage.t_m_c"` name the stage's
+    rotation and translation). A path into a block that `params` does not hold yet
+    (e.g. the stage during the camera solve) is skipped; unknown names raise
+    `ValueError` listing the names there.
     """
     spec = jax.tree.map(eqx.is_inexact_array, params)
     for path in freeze:
+        path = _FREEZE_ALIASES.get(path, path)
         node = params
         for name in path.split("."):
-            if not hasattr(node, name):
-                raise ValueError(f"cannot freeze {path!r}: no parameter {name!r} there")
+            if node is None:
+                break
+            names = [f.name for f in dataclasses.fields(node)] if _is_module(node) else []
+            if name not in names:
+                raise ValueError(
+                    f"cannot freeze {path!r}: no parameter {name!r} there"
+                    + (f" (there: {', '.join(names)})" if names else "")
+                )
             node = getattr(node, name)
         if node is None:
             continue
@@ -277,6 +347,7 @@ def least_squares(
     rtol: float = 1e-5,
     atol: float = 1e-5,
     throw: bool = True,
+    check_rank: bool = True,
 ) -> Fit:
     """Minimise `0.5 |fn(params, data)|²` over the free leaves of `params`.
 
@@ -293,6 +364,8 @@ def least_squares(
       any statistical meaning, and above the float64 noise of the residuals along the
       weakest directions (which would otherwise keep LM stepping on rounding noise).
     - `throw`: raise `NotConvergedError` when LM fails (the error carries the `Fit`).
+    - `check_rank`: raise `RankDeficientError`, naming the parameters, when the free
+      parameters are not determined together at the start (see [`null_directions`][]).
 
     **Returns:** a `Fit`.
     """
@@ -310,6 +383,8 @@ def least_squares(
         raise ValueError(f"{bad} residuals are not finite at the initial parameters")
     if not np.allclose(H @ z, JtJz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(JtJz)))):
         raise RuntimeError("internal error: the block normal matrix does not match JᵀJ")
+    if check_rank:
+        _check_rank(np.asarray(H), params, spec)
     col = jnp.sqrt(jnp.diag(H))
     scale = jnp.where(col > 0, 1.0 / jnp.where(col > 0, col, 1.0), 1.0)
     args = (fn, unravel, static, data, x0, scale)
@@ -324,6 +399,9 @@ def least_squares(
     )
     y = sol.value
     r = _residuals_jit(y, args)
+    # JᵀJ at the solution, for the parameters' covariance (same compiled program)
+    _, H_end, _ = _normal_at(x0 + y * scale, args0, structure, z)
+    H_end = np.asarray(H_end)
     r.block_until_ready()
     elapsed = time.perf_counter() - t0
     ok = sol.result == optx.RESULTS.successful and bool(jnp.all(jnp.isfinite(r)))
@@ -339,6 +417,9 @@ def least_squares(
         time_s=elapsed,
         free_mask=spec,
         scale=scale,
+        normal_matrix=H_end,
+        labels=tuple(parameter_labels(params, spec)),
+        n_observations=int(np.count_nonzero(np.asarray(r))),
     )
     if throw and not ok:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {message}", fit)

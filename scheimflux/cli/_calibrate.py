@@ -6,8 +6,14 @@ separate steps, then by default one joint Levenberg-Marquardt solve of every blo
 prints a summary and writes CAL.json (scheimflux.calibration/1).
 
 The defaults are the most accurate choice: the thick-lens model with radial-tangential
-distortion, solved jointly. An unconverged solve is an error and writes nothing unless
---allow-unconverged is given.
+distortion, solved jointly, then a final rejection pass (--reject) of outliers. An
+unconverged solve is an error and writes nothing unless --allow-unconverged is given;
+pixels outside the sensor are left out and counted; a calibration that fails a quality
+gate (reprojection RMS above 3x the stated corner sigma, stripe or gauge RMS above 3x the
+stated stripe sigma, the axis point off the sensor, heavy-tailed residuals, more than
+10 % outliers) is an error and writes nothing unless --force is given. The summary and
+CAL.json hold the sigma of every free parameter, the warnings, the frozen set, the solve
+statistics, the gates and the counts of left-out observations.
 """
 
 from __future__ import annotations
@@ -61,8 +67,9 @@ def register(subparsers) -> None:
         action="extend",
         metavar="PATH",
         default=None,
-        help="parameters held fixed, e.g. camera.dx camera.dy camera.f; REPLACES the "
-        "defaults (pixel pitch, f and a tilt gauge; the summary lists them)",
+        help="parameters held fixed, e.g. camera.dx camera.dy camera.f, stage.R_m_c, "
+        "stage.t_m_c, eccentricity; REPLACES the defaults (pixel pitch, f and a tilt "
+        "gauge; the summary lists them)",
     )
     p.add_argument(
         "--sigma-corner-px",
@@ -81,7 +88,16 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         metavar="K",
-        help="Huber loss with threshold K sigma (e.g. 3) against outliers (default: off)",
+        help="Huber loss with threshold K sigma against outliers (default: off; the "
+        "rejection pass, --reject, leaves outliers out)",
+    )
+    p.add_argument(
+        "--reject",
+        type=float,
+        default=5.0,
+        metavar="K",
+        help="after the joint solve, leave out observations beyond K robust sigma and "
+        "solve once more; 0: no rejection pass (default: %(default)s)",
     )
     p.add_argument(
         "--max-steps", type=int, default=300, help="LM steps per solve (default: %(default)s)"
@@ -91,12 +107,19 @@ def register(subparsers) -> None:
         action="store_true",
         help='write CAL.json even if a solve did not converge ("converged": false)',
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write CAL.json even if the calibration fails a quality gate (the file "
+        'records the failed gates; "quality": {"passed": false})',
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing CAL.json")
     p.set_defaults(func=run)
 
 
 def _check(args) -> None:
-    require_positive(args, "sigma_corner_px", "sigma_stripe_px", "robust")
+    require_positive(args, "sigma_corner_px", "sigma_stripe_px")
+    require_positive(args, "robust", "reject", zero_ok=True)
     if args.max_steps < 1:
         raise CLIError(f"--max-steps must be at least 1, got {args.max_steps}")
     if args.model == "pinhole" and args.distortion not in (None, "none"):
@@ -175,7 +198,7 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
 def run(args) -> int:
     _check(args)
     from ..calibrate._calibrate import calibrate
-    from ..calibrate._solve import NotConvergedError
+    from ..calibrate._solve import NotConvergedError, RankDeficientError
     from ..io._calibration import calibration_to_dict, parse_calibration
     from ..io._files import check_writable, write_json
     from ..io._observations import read_observations
@@ -202,36 +225,102 @@ def run(args) -> int:
             freeze=args.freeze,
             sigma_corner_px=args.sigma_corner_px,
             sigma_stripe_px=args.sigma_stripe_px,
-            robust=args.robust,
+            robust=args.robust or None,
+            reject=args.reject or None,
             max_steps=args.max_steps,
             throw=False,
         )
     except NotConvergedError as err:  # throw=False should prevent it; be safe
         raise CLIError(f"calibration did not converge: {err}; no file written") from None
+    except RankDeficientError as err:
+        raise CLIError(f"{err} (--freeze PATH ...); no file written") from None
     total = time.perf_counter() - t0
     extra = {
         "observations": str(args.observations),
         "sigma_corner_px": args.sigma_corner_px,
         "sigma_stripe_px": args.sigma_stripe_px,
-        "robust": args.robust,
+        "robust": args.robust or None,
+        "reject_sigma": args.reject or None,
         "total_time_s": total,
+        **_trust_entries(cal),
     }
     doc = calibration_to_dict(cal, diagnostics=extra)
     parse_calibration(doc)
     print(format_summary(doc))
+    print(format_trust(cal))
     print(f"total time: {total:.1f} s")
     failed = [
         f"{name} ({fit.message or 'not converged'} after {fit.steps} steps)"
         for name, fit in cal.fits.items()
         if not fit.converged
     ]
+    quality = getattr(cal, "quality", None)
+    refusals = []
     if failed and not args.allow_unconverged:
-        raise CLIError(
-            f"calibration did not converge: {', '.join(failed)}; no file written "
-            "(try --init closed-form, more views, or --allow-unconverged to write it anyway)"
+        refusals.append(
+            f"calibration did not converge: {', '.join(failed)} (try --init closed-form, "
+            "more views, or --allow-unconverged to write it anyway)"
         )
+    if quality is not None and not quality.passed and not args.force:
+        refusals.append(
+            "calibration failed its quality gates: "
+            + "; ".join(g.message for g in quality.failures)
+            + " (--force writes it anyway)"
+        )
+    if refusals:
+        raise CLIError("; ".join(refusals) + "; no file written")
     write_json(out, doc, overwrite=args.overwrite)
     if failed:
         print(f"warning: wrote an UNCONVERGED calibration ({', '.join(failed)})")
+    if quality is not None and not quality.passed:
+        names = ", ".join(g.name for g in quality.failures)
+        print(f"warning: wrote a calibration that FAILED its quality gates ({names})")
     print(f"wrote {out}")
     return 0
+
+
+# ----------------------------------------------------------------------------- trust
+
+
+def _uncertainty(cal):
+    """The final solve's parameter diagnostics, or None where the solve kept no JᵀJ."""
+    from ..calibrate._uncertainty import fit_diagnostics
+
+    fits = getattr(cal, "fits", {}) or {}
+    final = fits.get("joint", fits.get("camera"))
+    if final is None or getattr(final, "normal_matrix", None) is None:
+        return None
+    return fit_diagnostics(cal)
+
+
+def _trust_entries(cal) -> dict:
+    """The file's `uncertainty` and `quality` entries (diagnostics section)."""
+    out = {}
+    diag = _uncertainty(cal)
+    if diag is not None:
+        out["uncertainty"] = diag.to_dict()
+    quality = getattr(cal, "quality", None)
+    if quality is not None:
+        out["quality"] = quality.to_dict()
+    return out
+
+
+def format_trust(cal) -> str:
+    """σ of the free parameters, warnings, quality gates and left-out observations."""
+    parts = []
+    diag = _uncertainty(cal)
+    if diag is not None:
+        parts.append(diag.summary())
+    quality = getattr(cal, "quality", None)
+    if quality is not None:
+        parts.append(quality.summary())
+        if quality.plane is not None:
+            p = quality.plane
+            w, s = p["normal_sigma_rad"]
+            parts.append(
+                f"laser plane from {p['n_points']} stripe points on {p['n_views']} boards: "
+                f"spread across the line {p['spread_across_line_mm']:.3g} mm; predicted "
+                f"sigma of the normal {w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
+                f"{p['offset_sigma_mm'] * 1e3:.3g} um"
+            )
+    return "\n".join(parts)

@@ -1,0 +1,197 @@
+"""Uncertainty of the calibration's parameters and of what users measure with it.
+
+The parameters' covariance comes from `JᵀJ` at the final solve's optimum, which the
+solver already assembles ([`Fit`][]`.normal_matrix`: no extra compilation):
+
+    Σ = s² (JᵀJ)⁺,   s² = |r|² / (n − p)
+
+on the column-scaled matrix. A reconstructed point's own σ is relative to the camera
+frame, whose placement (above all its depth along the optical axis, which e and z0
+share) the data determine poorly; but that placement moves every point alike and cancels
+in what users measure: distances, lengths, heights. [`length_uncertainty`][] propagates
+the full covariance between points (and the stripe pixels' own noise) to the distance
+between two reconstructed points.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..reconstruct._reconstruct import intersect_ray_plane
+from ._calibrate import Calibration
+from ._diagnostics import CORRELATION_WARN, Diagnostics
+from ._solve import RANK_RTOL, Fit, split
+
+__all__ = ["fit_diagnostics", "length_uncertainty"]
+
+
+def _final_fit(cal: Calibration) -> tuple[str, Fit]:
+    for name in ("joint", "camera"):
+        if name in cal.fits:
+            return name, cal.fits[name]
+    raise ValueError("the calibration holds no camera or joint solve")
+
+
+def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
+    """σ, correlations and identifiability of the final solve, from its `JᵀJ`.
+
+    The same statistics as [`diagnostics`][] (which differentiates the residuals anew),
+    computed from the normal matrix the solver kept at its optimum. A direction whose
+    eigenvalue of the column-scaled `JᵀJ` is below `RANK_RTOL` × the largest is reported
+    (with the `top` parameters in it) and left out of Σ.
+
+    **Returns:** a [`Diagnostics`][] (`covariance` in physical units; `singular_values`
+    are the square roots of the scaled eigenvalues).
+    """
+    block, fit = _final_fit(cal)
+    if fit.normal_matrix is None:
+        raise ValueError(f"the {block} solve kept no normal matrix")
+    H = np.asarray(fit.normal_matrix, dtype=np.float64)
+    labels = list(fit.labels)
+    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+    lam, V = np.linalg.eigh(H * np.outer(d, d))
+    lam, V = lam[::-1], V[:, ::-1]  # descending
+    big = max(float(lam[0]), 1e-300) if lam.size else 1.0
+    keep = lam > RANK_RTOL * big
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    n, p = int(fit.n_observations), len(labels)
+    s2 = 2.0 * fit.cost / (n - p) if n > p else math.nan
+    cov = s2 * (d[:, None] * ((V * inv) @ V.T) * d[None, :])
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = np.where(np.outer(std, std) > 0, cov / np.outer(std, std), 0.0)
+    np.fill_diagonal(corr, 1.0)
+    warnings, nulls = [], []
+    for k in np.flatnonzero(~keep):
+        v = V[:, k]
+        order = np.argsort(-np.abs(v))[:top]
+        comps = [(labels[i], float(v[i])) for i in order if abs(v[i]) > 0.05]
+        nulls.append((float(lam[k] / big), comps))
+        names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
+        warnings.append(f"non-identifiable direction: {names}; freeze one of these parameters")
+    cam = [i for i, lab in enumerate(labels) if lab.startswith("camera.")]
+    for a_i, a in enumerate(cam):
+        for b in cam[a_i + 1 :]:
+            if abs(corr[a, b]) > CORRELATION_WARN:
+                warnings.append(
+                    f"strongly correlated: {labels[a]} and {labels[b]} (ρ = {corr[a, b]:+.4f})"
+                )
+    x0, _, _ = split(fit.params, fit.free_mask)
+    sv = np.sqrt(np.clip(lam, 0.0, None))
+    return Diagnostics(
+        block=block,
+        labels=labels,
+        values=np.asarray(x0),
+        std=std,
+        covariance=cov,
+        correlation=corr,
+        variance_factor=s2,
+        n_residuals=n,
+        n_params=p,
+        singular_values=sv,
+        condition_number=float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else math.inf,
+        null_directions=nulls,
+        warnings=warnings,
+        frozen=tuple(cal.freeze),
+    )
+
+
+# ----------------------------------------------------------------------------- lengths
+
+
+@eqx.filter_jit
+def _points_with_jacobians(params, spec, idx, uv):
+    """Points `(N, 3)`, `∂X/∂θ` `(N, 3, q)` for the free parameters `idx`, and
+    `∂X/∂uv` `(N, 3, 2)` (camera frame)."""
+    x0, unravel, static = split(params, spec)
+
+    def point(xs, p):
+        prm = eqx.combine(unravel(x0.at[idx].set(xs)), static)
+        X, _ = intersect_ray_plane(prm.camera.backproject_one(p), prm.plane)
+        return X
+
+    xs = x0[idx]
+    X = jax.vmap(point, in_axes=(None, 0))(xs, uv)
+    J_theta = jax.vmap(jax.jacfwd(point), in_axes=(None, 0))(xs, uv)
+    J_uv = jax.vmap(jax.jacfwd(point, argnums=1), in_axes=(None, 0))(xs, uv)
+    return X, J_theta, J_uv
+
+
+def length_uncertainty(
+    cal: Calibration,
+    uv_a,
+    uv_b,
+    *,
+    sigma_px: float = 0.0,
+    diag: Diagnostics | None = None,
+) -> dict:
+    """σ of the distance between pairs of reconstructed stripe points (camera frame).
+
+    With θ the free camera and laser-plane parameters, `Σ_θ` their covariance (joint
+    solve, board poses marginalised), and `X_a = X(θ, p_a)`, `X_b = X(θ, p_b)`:
+
+        L = |X_a − X_b|,   u = (X_a − X_b) / L,
+        σ²_L = uᵀ (J_a − J_b) Σ_θ (J_a − J_b)ᵀ u          (calibration, shared by both)
+             + σ²_px (|uᵀ ∂X_a/∂p_a|² + |uᵀ ∂X_b/∂p_b|²)   (each pixel's own noise)
+
+    The calibration term holds the covariance between the two points: what moves both
+    alike (the camera datum) cancels. Per-point σ (from [`point_uncertainty`][]) are
+    relative to the camera frame and include that datum.
+
+    **Arguments:**
+    - `uv_a`, `uv_b`: stripe pixels `(N, 2)` of the two ends of each length.
+    - `sigma_px`: the measured stripe pixels' noise (px per coordinate; 0: the
+      calibration's part only).
+    - `diag`: the parameters' diagnostics (default [`fit_diagnostics`][] of the joint
+      solve).
+
+    **Returns:** a dict of `(N,)` arrays (mm): `length`, `sigma` (total),
+    `sigma_calibration`, `sigma_pixels`, and the per-point camera-frame σ of each end,
+    `point_sigma_a`, `point_sigma_b` `(N, 3)`.
+    """
+    if cal.params.plane is None:
+        raise ValueError("the calibration has no laser plane: nothing to reconstruct")
+    uv_a = np.asarray(uv_a, dtype=np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, dtype=np.float64).reshape(-1, 2)
+    if uv_a.shape != uv_b.shape:
+        raise ValueError(f"uv_a {uv_a.shape} and uv_b {uv_b.shape} must have the same shape")
+    if "joint" not in cal.fits:
+        raise ValueError("length_uncertainty needs a joint calibration (calibrate(joint=True))")
+    if diag is None:
+        diag = fit_diagnostics(cal)
+    fit = cal.fits["joint"]
+    params, spec = fit.params, fit.free_mask
+    idx = diag.select(("camera.", "plane."))
+    if len(idx) == 0:
+        raise ValueError("no free camera or laser-plane parameters: no calibration σ")
+    if not (math.isfinite(sigma_px) and sigma_px >= 0):
+        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    uv = jnp.asarray(np.concatenate([uv_a, uv_b]))
+    X, Jt, Ju = (np.asarray(a) for a in _points_with_jacobians(params, spec, jnp.asarray(idx), uv))
+    n = len(uv_a)
+    Xa, Xb, Ja, Jb, Ua, Ub = X[:n], X[n:], Jt[:n], Jt[n:], Ju[:n], Ju[n:]
+    delta = Xa - Xb
+    L = np.linalg.norm(delta, axis=1)
+    u = delta / np.where(L > 0, L, 1.0)[:, None]
+    S = diag.covariance[np.ix_(idx, idx)]
+    g = np.einsum("ni,niq->nq", u, Ja - Jb)
+    var_cal = np.einsum("nq,qr,nr->n", g, S, g)
+    ga, gb = np.einsum("ni,nik->nk", u, Ua), np.einsum("ni,nik->nk", u, Ub)
+    var_px = sigma_px**2 * (np.sum(ga**2, axis=1) + np.sum(gb**2, axis=1))
+    pa = np.sqrt(np.clip(np.einsum("niq,qr,nir->ni", Ja, S, Ja), 0.0, None))
+    pb = np.sqrt(np.clip(np.einsum("niq,qr,nir->ni", Jb, S, Jb), 0.0, None))
+    var_cal = np.clip(var_cal, 0.0, None)
+    return {
+        "length": L,
+        "sigma": np.sqrt(var_cal + var_px),
+        "sigma_calibration": np.sqrt(var_cal),
+        "sigma_pixels": np.sqrt(var_px),
+        "point_sigma_a": pa,
+        "point_sigma_b": pb,
+    }
