@@ -141,7 +141,8 @@ def run_demo(
     uv = np.full((len(frames), n_max, 2), np.nan)
     for i, f in enumerate(frames):
         uv[i, : len(f)] = f
-    rec_m = stripe_to_measurement(cam, p.plane, p.stage, jnp.asarray(uv), np.arange(len(frames)))
+    frame_index = np.arange(len(frames))[:, None]  # one index per frame (row of uv)
+    rec_m = stripe_to_measurement(cam, p.plane, p.stage, jnp.asarray(uv), frame_index)
     rec_c = stripe_to_camera(cam, p.plane, jnp.asarray(uv))
     pts_m, pts_c = np.asarray(rec_m.points), np.asarray(rec_c.points)
     valid = np.asarray(rec_m.valid)
