@@ -303,3 +303,53 @@ def test_frame_index_without_its_points_axis_refused():
     uv = jnp.full((4, 4, 2), 800.0)
     with pytest.raises(ValueError, match=r"frame_index of shape \(4,\) does not match"):
         sf.stripe_to_measurement(cam, plane, stage, uv, np.arange(4))
+
+
+# ------------------------------------------------------------------- observations file
+
+
+def _obs_doc():
+    return {
+        "format": "scheimflux.observations/1",
+        "sensor": {"width": 1600, "height": 1200, "pixel_pitch_mm": [0.0044, 0.0044]},
+        "nominal": {"focal_length_mm": 97.0, "magnification": 1.5},
+        "board_points_mm": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]],
+        "views": [{"corners_px": [[1, 2], [3, 4], [5, 6], [7, 8]], "stripe_px": []}],
+    }
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda d: d["nominal"].update(focal_lenght_mm=50.0),
+            r"unknown key 'nominal\.focal_lenght_mm' \(did you mean 'focal_length_mm'\?\)",
+        ),
+        (lambda d: d.update(veiws=[]), r"unknown key 'veiws' \(did you mean 'views'\?\)"),
+        (
+            lambda d: d["views"][0].update(stripes_px=[]),
+            r"unknown key 'views\[0\]\.stripes_px' \(did you mean 'stripe_px'\?\)",
+        ),
+        (
+            lambda d: d["sensor"].update(colour="grey"),
+            r"unknown key 'sensor\.colour'; allowed here",
+        ),
+    ],
+)
+def test_observations_unknown_keys(tmp_path, capsys, edit, message):
+    from scheimflux.io import read_observations
+
+    doc = _obs_doc()
+    read_observations_ok = tmp_path / "ok.json"
+    read_observations_ok.write_text(json.dumps(doc))
+    read_observations(read_observations_ok)  # the unedited file is fine
+    edit(doc)
+    path = tmp_path / "obs.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=message):
+        read_observations(path)
+    # and through the CLI: one line, exit 1, before any solve
+    code, _, err = _run(capsys, "calibrate", str(path), "--out", str(tmp_path / "cal.json"))
+    assert code == 1
+    line = _one_line(err)
+    assert "obs.json" in line and "unknown key" in line
