@@ -353,3 +353,18 @@ def test_observations_unknown_keys(tmp_path, capsys, edit, message):
     assert code == 1
     line = _one_line(err)
     assert "obs.json" in line and "unknown key" in line
+
+
+def test_pose_from_matrix_refuses_non_rotations():
+    from scheimflux.geometry import Pose
+
+    with pytest.raises(ValueError, match=r"not a rotation matrix \(\|R Rᵀ − I\| = 3, det = 8"):
+        Pose.from_matrix(2 * np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match=r"det = -1"):
+        Pose.from_matrix(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+    with pytest.raises(ValueError, match="not finite"):
+        Pose.from_matrix(np.full((3, 3), np.nan), np.zeros(3))
+    with pytest.raises(ValueError, match="not a rotation matrix"):
+        sf.RotaryStage(np.ones((3, 3)), np.zeros(3), 0.1)
+    R = np.asarray(sf.geometry.rotation_matrix(jnp.array([0.1, -0.2, 0.3])))
+    np.testing.assert_allclose(Pose.from_matrix(R, np.zeros(3)).R, R, atol=1e-14)
