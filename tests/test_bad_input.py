@@ -196,6 +196,32 @@ def test_simulate_interrupted_with_overwrite_keeps_the_old_set(tmp_path, capsys,
     _no_tmp(out)
 
 
+def test_simulate_output_appearing_during_the_run_is_kept(tmp_path, capsys, monkeypatch):
+    # without --overwrite: a truth.json created by someone else while simulate runs is
+    # not replaced, and no new file of the set is moved in beside it
+    out = tmp_path / "sim"
+    import scheimflux.cli._simulate as simulate_cli
+    import scheimflux.simulate._observe as observe
+    from scheimflux.io import Observations, View
+
+    tiny = Observations(
+        1600, 1200, (0.0044, 0.0044), np.zeros((4, 3)),
+        [View(np.full((4, 2), 500.0), np.full((2, 2), 600.0))] * 3,
+    )  # fmt: skip
+
+    def racing_write_truth(path, truth, overwrite=False):
+        open(path, "w").close()
+        (out / "truth.json").write_text("theirs")
+
+    monkeypatch.setattr(simulate_cli, "_build_rig", lambda args: None)
+    monkeypatch.setattr(observe, "simulate_observations", lambda *a, **k: (tiny, None))
+    monkeypatch.setattr(observe, "write_truth", racing_write_truth)
+    code, _, err = _run(capsys, "simulate", "--out", str(out), *_SMALL)
+    assert code == 1 and "truth.json exists; pass --overwrite" in _one_line(err)
+    assert sorted(os.listdir(out)) == ["truth.json"]
+    assert (out / "truth.json").read_text() == "theirs"
+
+
 # ----------------------------------------------------------------------- file writing
 
 

@@ -209,7 +209,9 @@ def run(args) -> int:
             dt = time.perf_counter() - t0
             names.append("images")
         if not args.overwrite:  # a file may have appeared during the run
-            refuse_to_clobber(*[os.path.join(out, n) for n in names], overwrite=False)
+            refuse_to_clobber(*paths, overwrite=False)
+            if with_images and os.path.isdir(images) and os.listdir(images):
+                raise CLIError(f"{images} is not empty; pass --overwrite to replace it")
         _swap_in(staging, out, names)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
