@@ -85,7 +85,7 @@ def test_reconstruct_output_exists(tmp_path, capsys):
     code, _, err = _run(
         capsys, "reconstruct", "c.json", "s.json", "--out", str(tmp_path / "pts.ply")
     )
-    assert code == 1 and "exists; pass --overwrite" in _one_line(err)
+    assert code == 1 and "pts.ply exists; pass overwrite=True (--overwrite)" in _one_line(err)
     assert (tmp_path / "pts.ply").read_text() == "keep"
 
 

@@ -39,7 +39,7 @@ def check_output(path: str, *, overwrite: bool) -> str:
     try:
         return check_writable(path, overwrite=overwrite)
     except FileExistsError:
-        raise CLIError(f"{path} exists; pass --overwrite to replace it") from None
+        raise  # "PATH exists; pass overwrite=True (--overwrite) to replace it"
     except OSError as err:
         raise CLIError(str(err)) from None
 
