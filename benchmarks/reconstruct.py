@@ -102,7 +102,7 @@ def bench_measurement(shapes, repeats: int) -> None:
     print("-" * len(hdr))
     for frames, pts in shapes:
         uv = jnp.asarray(_pixels(frames * pts, np.float64).reshape(frames, pts, 2))
-        idx = jnp.arange(frames)
+        idx = jnp.arange(frames)[:, None]  # one index per frame
         t = time.perf_counter()
         sf.stripe_to_measurement(cam, plane, stage, uv, idx).points.block_until_ready()
         first = time.perf_counter() - t

@@ -11,7 +11,8 @@ def as_points(x, last: int, name: str):
     """Return `x` as a floating array whose last axis has length `last`.
 
     Raises `ValueError` naming the argument when the shape is wrong, before any tracing.
-    Integer input is promoted to the default float type; float32 and float64 are kept.
+    Integer input is promoted to the default float type; float32 and float64 are kept;
+    float16 and bfloat16 are refused.
     """
     arr = x if hasattr(x, "dtype") and hasattr(x, "shape") else np.asarray(x)
     if arr.ndim == 0 or arr.shape[-1] != last:
@@ -20,6 +21,13 @@ def as_points(x, last: int, name: str):
         if not (jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == bool):
             raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
         arr = jnp.asarray(arr, dtype=float)
+    elif jnp.dtype(arr.dtype).itemsize < 4:
+        # float16 / bfloat16 hold pixels to 1 px above 1024 and points to ~0.1 mm at
+        # 150 mm: refused rather than upcast, as the precision is already lost.
+        raise ValueError(
+            f"{name} is {jnp.dtype(arr.dtype).name}, too coarse for metrology; "
+            "pass float32 or float64"
+        )
     return jnp.asarray(arr)
 
 

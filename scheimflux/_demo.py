@@ -7,7 +7,6 @@ measurement frame → points.ply, and a comparison with the ray-traced truth.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -57,6 +56,7 @@ def run_demo(
     """
     from .calibrate._calibrate import calibrate
     from .io._calibration import write_calibration
+    from .io._files import write_json
     from .io._observations import write_observations
     from .io._pointcloud import write_ply
     from .reconstruct._reconstruct import stripe_to_camera, stripe_to_measurement
@@ -141,7 +141,8 @@ def run_demo(
     uv = np.full((len(frames), n_max, 2), np.nan)
     for i, f in enumerate(frames):
         uv[i, : len(f)] = f
-    rec_m = stripe_to_measurement(cam, p.plane, p.stage, jnp.asarray(uv), np.arange(len(frames)))
+    frame_index = np.arange(len(frames))[:, None]  # one index per frame (row of uv)
+    rec_m = stripe_to_measurement(cam, p.plane, p.stage, jnp.asarray(uv), frame_index)
     rec_c = stripe_to_camera(cam, p.plane, jnp.asarray(uv))
     pts_m, pts_c = np.asarray(rec_m.points), np.asarray(rec_c.points)
     valid = np.asarray(rec_m.valid)
@@ -192,9 +193,7 @@ def run_demo(
             "total": total,
         },
     }
-    with open(os.path.join(out, "summary.json"), "w", encoding="utf-8") as fh:
-        json.dump(summary, fh, indent=1)
-        fh.write("\n")
+    write_json(os.path.join(out, "summary.json"), summary, overwrite=overwrite)
     print(
         f"  measured a fresh scan: {summary['points']} gauge points, measurement frame "
         f"[{t_rec:.1f} s]"

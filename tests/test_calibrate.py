@@ -75,7 +75,19 @@ def test_frozen_parameters_stay_fixed(traced):
     assert float(cc.camera.e) != 0.0  # free, started at 0 as in the paper
 
 
-def test_recovers_from_poor_nominal_values(traced, joint_cal):
+@pytest.fixture(scope="module")
+def nominal_ref(traced):
+    return calibrate_camera(traced[1], distortion="none", init="nominal")
+
+
+@pytest.mark.parametrize("factor", [0.8, 1.25])
+def test_recovers_from_poor_nominal_values(traced, nominal_ref, factor):
+    # The nominal initialisation reads f, the magnification and the tilt; f and the tilt
+    # are then held (the gauge), the magnification only sets the start of z0 and, through
+    # the camera, of every board pose. A magnification 20-25 % off must reach the same
+    # optimum as the true one. Tolerances: LM stops when the RMS step is below 1e-5 σ of
+    # the unit-scaled state; σ(z0), σ(e) ≈ 0.1 mm and σ(x0, y0) ≈ 10 px here, so the two
+    # solves agree to ~1e-6 mm and ~1e-4 px; the bounds leave a factor ~10.
     _, obs, _ = traced
     n = obs.nominal
     bad = Observations(
@@ -84,16 +96,18 @@ def test_recovers_from_poor_nominal_values(traced, joint_cal):
         obs.pixel_pitch_mm,
         obs.board_points_mm,
         obs.views,
-        Nominal(
-            n.focal_length_mm * 1.1,
-            n.magnification * 0.8,
-            (n.tilt_deg[0] + 4.0, n.tilt_deg[1] - 5.0),
-        ),
+        Nominal(n.focal_length_mm, n.magnification * factor, n.tilt_deg),
         obs.stage,
     )
-    cc = calibrate_camera(bad, distortion="none", init="closed-form")
-    ref = calibrate_camera(obs, distortion="none", init="closed-form")
-    assert cc.reprojection_rms_px == pytest.approx(ref.reprojection_rms_px, rel=1e-6)
+    ref = nominal_ref
+    cc = calibrate_camera(bad, distortion="none", init="nominal")
+    # the perturbation is read: the start is much worse
+    assert cc.fit.initial_cost > 5 * ref.fit.initial_cost
+    assert cc.fit.converged and ref.fit.converged
+    assert cc.reprojection_rms_px == pytest.approx(ref.reprojection_rms_px, rel=1e-9)
+    for name, tol in (("z0", 1e-5), ("e", 1e-5), ("x0", 2e-3), ("y0", 2e-3)):
+        a, b = float(getattr(cc.camera, name)), float(getattr(ref.camera, name))
+        assert abs(a - b) < tol, (name, a, b)
 
 
 def test_pinhole_model_calibrates(traced):
@@ -156,18 +170,34 @@ def _model_observations(noise_corner=0.0, noise_stripe=0.0, seed=0):
     return obs, cam, plane
 
 
-def test_joint_equals_sequential_in_the_noise_free_limit():
-    obs, cam, plane = _model_observations()
-    # nominal tilt exact: the tilt gauge is then the truth, and the model can fit exactly
-    seq = calibrate(obs, distortion="none", init="nominal", joint=False)
-    joint = calibrate(obs, distortion="none", init="nominal", joint=True)
-    uv = jnp.stack(jnp.meshgrid(jnp.linspace(100, 1500, 5), jnp.linspace(100, 1100, 4)), -1)
-    Xs = sf.stripe_to_camera(seq.camera, seq.plane, uv).points
-    Xj = sf.stripe_to_camera(joint.camera, joint.plane, uv).points
-    Xt = sf.stripe_to_camera(cam, plane, uv).points
-    np.testing.assert_allclose(Xs, Xj, atol=1e-6)
-    np.testing.assert_allclose(Xj, Xt, atol=1e-6)
-    assert joint.reprojection_rms_px < 1e-6
+@pytest.mark.slow
+def test_joint_and_sequential_on_noise_free_ray_traced_data():
+    # Noise-free pixels from the ray tracer (not from the model): what remains is the
+    # model error of the undistorted thick-lens model on the real double Gauss,
+    # ≈ 0.012 px RMS. Both calibrations must fit to that level; the joint one must put the
+    # stripe points on its plane (no noise to fit) and measure distances to a few times
+    # the model error's footprint (0.012 px × 2.9 µm/px ≈ 0.04 µm; measured 0.075 µm RMS),
+    # while the sequential one inherits the boards' depth error into the plane
+    # (measured 14 µm plane RMS, 0.35 µm distance error), so joint must beat it.
+    rig = paper_rig(refine=False)
+    obs, truth = simulate_observations(
+        rig,
+        Checkerboard(11, 8, 0.3),
+        n_views=8,
+        corner_noise_px=0.0,
+        stripe_noise_px=0.0,
+        stage_scan=False,
+        seed=3,
+    )
+    seq = calibrate(obs, distortion="none", joint=False)
+    joint = calibrate(obs, distortion="none", joint=True)
+    assert all(f.converged for f in joint.fits.values())
+    for cal in (seq, joint):
+        assert cal.reprojection_rms_px < 0.02
+    assert joint.plane_rms_mm < 1e-5
+    e_joint, e_seq = _distance_error_um(joint, truth), _distance_error_um(seq, truth)
+    assert e_joint < 0.2
+    assert e_joint < 0.5 * e_seq
 
 
 def test_implicit_derivative_wrt_an_observation_matches_finite_differences():

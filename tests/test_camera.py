@@ -227,8 +227,25 @@ def test_float32_camera_works():
 
 def test_tree_structure_is_nine_scalars():
     cam = _cam()
-    assert len(jax.tree.leaves(cam)) == 9
-    assert tree_allclose(cam, jax.tree.map(lambda x: x + 0.0, cam))
+    names = ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy")
+    leaves, treedef = jax.tree.flatten(cam)
+    # the leaves are exactly the nine named parameters, scalars, in field order
+    assert len(leaves) == 9 and all(jnp.shape(x) == () for x in leaves)
+    assert [float(x) for x in leaves] == [float(getattr(cam, n)) for n in names]
+    # each leaf drives its own field: perturbing leaf i changes field i and nothing else,
+    # and the rebuilt camera projects like one constructed with that value
+    X = jnp.array([3.0, -2.0, 150.0])
+    for i, name in enumerate(names):
+        bumped = list(leaves)
+        bumped[i] = leaves[i] * 1.001 + 1e-4
+        cam2 = jax.tree.unflatten(treedef, bumped)
+        for j, other in enumerate(names):
+            same = float(getattr(cam2, other)) == float(getattr(cam, other))
+            assert same == (j != i), (name, other)
+        ref = _cam(**{name: float(bumped[i])})
+        np.testing.assert_array_equal(cam2.project(X), ref.project(X))
+        assert not np.allclose(cam2.project(X), cam.project(X), rtol=0, atol=1e-12)
+    assert tree_allclose(jax.tree.unflatten(treedef, leaves), cam, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize(

@@ -71,7 +71,8 @@ def test_ply_no_clobber(tmp_path, points):
         write_ply(path, points[:3])
     assert path.read_bytes() == before
     write_ply(path, points[:3], overwrite=True)
-    assert read_ply(path).shape == (3, 3)
+    np.testing.assert_array_equal(read_ply(path), points[:3])
+    assert [p.name for p in tmp_path.iterdir()] == ["p.ply"]  # no temporary file left
 
 
 def test_read_ply_other_writers(tmp_path):

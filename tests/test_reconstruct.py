@@ -2,6 +2,7 @@
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -91,13 +92,16 @@ def test_shape_errors(system):
     stage = sf.paper_stage()
     with pytest.raises(ValueError, match="frame_index"):
         sf.stripe_to_measurement(cam, plane, stage, jnp.zeros((4, 5, 2)), np.arange(3))
+    # a per-frame index without its points axis is refused, never guessed
+    with pytest.raises(ValueError, match=r"frame_index\[:, None\]"):
+        sf.stripe_to_measurement(cam, plane, stage, jnp.zeros((4, 5, 2)), np.arange(4))
 
 
 def test_measurement_frame(system):
     cam, plane = system
     stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(10.0))
     uv = jnp.broadcast_to(jnp.array([[700.0, 500.0], [900.0, 650.0]]), (4, 2, 2))
-    rec = sf.stripe_to_measurement(cam, plane, stage, uv, np.arange(4))
+    rec = sf.stripe_to_measurement(cam, plane, stage, uv, np.arange(4)[:, None])
     Xc = sf.stripe_to_camera(cam, plane, uv[0]).points + jnp.array([1.0, 2.0, 3.0])
     for i in range(4):
         a = math.radians(10.0 * i)
@@ -131,3 +135,122 @@ def test_reconstruction_gradients_match_finite_differences(system):
         central_difference(lambda p: sf.stripe_to_camera(cam, plane, p).points, uv[0]),
         rtol=1e-6,
     )
+
+
+def test_frame_index_with_as_many_frames_as_points(system):
+    # Issue 11 item 1: with F == N a 1-D per-frame index used to be applied along the
+    # points axis by a shape heuristic, silently. The explicit (F, 1) index must turn
+    # frame i by i * delta_omega; the expected points come from the camera frame and the
+    # stage's closed form, one frame at a time.
+    cam, plane = system
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(10.0))
+    F = 3
+    uv = jnp.asarray(
+        np.stack([[[700.0 + 50 * i + 10 * k, 500.0 + 40 * k] for k in range(F)] for i in range(F)])
+    )
+    rec = sf.stripe_to_measurement(cam, plane, stage, uv, np.arange(F)[:, None])
+    for i in range(F):
+        Xc = np.asarray(sf.stripe_to_camera(cam, plane, uv[i]).points) + [1.0, 2.0, 3.0]
+        a = math.radians(10.0 * i)
+        Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        np.testing.assert_allclose(rec.points[i], Xc @ Rz.T, rtol=1e-12)
+    # the ambiguous 1-D index is refused (main applied it along the points)
+    with pytest.raises(ValueError, match="frame_index"):
+        sf.stripe_to_measurement(cam, plane, stage, uv, np.arange(F))
+    # a full (F, N) index and the (F, 1) index agree
+    full = sf.stripe_to_measurement(cam, plane, stage, uv, np.repeat(np.arange(F)[:, None], F, 1))
+    np.testing.assert_array_equal(np.asarray(full.points), np.asarray(rec.points))
+
+
+def test_degenerate_plane_status(system):
+    cam, _ = system
+    uv = _grid(3)
+    # plane 0.15 µm from the camera centre (issue 11 item 4): every point would collapse
+    # onto the centre; it must not be "valid"
+    near = sf.LaserPlane.from_normal_distance([-0.15, 0.03, 0.99], 1.5e-4)
+    rec = sf.stripe_to_camera(cam, near, uv)
+    assert np.all(np.asarray(rec.status) == sf.Status.DEGENERATE_PLANE)
+    assert np.all(np.isnan(np.asarray(rec.points)))
+    # just beyond the threshold the plane works and the points lie on it
+    ok = sf.LaserPlane.from_normal_distance([-0.15, 0.03, 0.99], 2e-3)
+    rec = sf.stripe_to_camera(cam, ok, uv)
+    assert bool(jnp.all(rec.valid))
+    np.testing.assert_allclose(ok.signed_distance(rec.points), 0.0, atol=1e-15)
+    # a traced non-finite plane (no construction check under jit) gets the status too
+    bad = jax.jit(lambda s: sf.LaserPlane(jnp.array([s, 0.0, 1.0])))(jnp.nan)
+    rec = sf.stripe_to_camera(cam, bad, uv)
+    assert np.all(np.asarray(rec.status) == sf.Status.DEGENERATE_PLANE)
+
+
+def test_outside_sensor_status(system):
+    cam, plane = system
+    uv = jnp.array([[-300.0, 500.0], [800.0, 600.0], [1599.4, 1199.4], [1599.6, 10.0]])
+    rec = sf.stripe_to_camera(cam, plane, uv, sensor_size=(1600, 1200))
+    O, K = sf.Status.OUTSIDE_SENSOR, sf.Status.OK
+    assert rec.status.tolist() == [O, K, K, O]
+    assert np.all(np.isnan(np.asarray(rec.points)[[0, 3]]))
+    # without a sensor size the same pixels reconstruct (the old behaviour)
+    assert bool(jnp.all(sf.stripe_to_camera(cam, plane, uv).valid))
+    stage = sf.paper_stage()
+    rm = sf.stripe_to_measurement(cam, plane, stage, uv, 0, sensor_size=(1600, 1200))
+    assert rm.status.tolist() == [O, K, K, O]
+    with pytest.raises(ValueError, match="sensor_size"):
+        sf.stripe_to_camera(cam, plane, uv, sensor_size=(0, 1200))
+
+
+@pytest.mark.parametrize(
+    "distortion",
+    [None, sf.camera.RadialTangential(k1=-50.0, k2=2e4, p1=0.02, p2=-0.01)],
+)
+def test_masked_loss_gradient_finite_with_a_nan_pixel(system, distortion):
+    # Issue 11 item 8: one NaN pixel (or one failed undistortion) in a batch must not make
+    # the gradient of a masked loss NaN for the shared parameters. The gradient must also
+    # equal the gradient of the same loss over the good pixels alone.
+    cam, plane = system
+    if distortion is not None:
+        cam = eqx.tree_at(lambda c: c.distortion, cam, distortion)
+    good = jnp.array([[300.0, 200.0], [900.0, 700.0], [1300.0, 1000.0]])
+    uv = jnp.concatenate([good, jnp.array([[jnp.nan, 500.0]])])
+
+    def loss(c, p, px):
+        rec = sf.stripe_to_camera(c, p, px)
+        pts = jnp.where(rec.valid[:, None], rec.points, 0.0)
+        return jnp.sum(pts**2)
+
+    g = jax.grad(loss, argnums=(0, 1))(cam, plane, uv)
+    g_ref = jax.grad(loss, argnums=(0, 1))(cam, plane, good)
+    leaves = jax.tree.leaves(g)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
+    for a, b in zip(leaves, jax.tree.leaves(g_ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300)
+
+
+def test_masked_loss_gradient_finite_with_a_failed_undistortion(system):
+    # k1 = -2000 folds the radial map inside the sensor: the corner pixel's undistortion
+    # fails (INVALID_PIXEL); the masked loss's gradient must stay finite and equal the
+    # gradient over the other pixels alone.
+    cam, plane = system
+    cam = eqx.tree_at(lambda c: c.distortion, cam, sf.camera.RadialTangential(k1=-2000.0))
+    px = jnp.array([[800.0, 600.0], [820.0, 640.0], [0.0, 0.0]])
+    rec = sf.stripe_to_camera(cam, plane, px)
+    assert rec.status.tolist()[:2] == [sf.Status.OK, sf.Status.OK]
+    assert rec.status.tolist()[2] == sf.Status.INVALID_PIXEL
+
+    def loss(c, p):
+        r = sf.stripe_to_camera(c, p, px)
+        return jnp.sum(jnp.where(r.valid[:, None], r.points, 0.0) ** 2)
+
+    def loss_good(c, p):
+        return jnp.sum(sf.stripe_to_camera(c, p, px[:2]).points ** 2)
+
+    g = jax.tree.leaves(jax.grad(loss, argnums=(0, 1))(cam, plane))
+    g_ref = jax.tree.leaves(jax.grad(loss_good, argnums=(0, 1))(cam, plane))
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+    for a, b in zip(g, g_ref):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300)
+
+
+def test_float16_pixels_refused(system):
+    cam, plane = system
+    with pytest.raises(ValueError, match="float16"):
+        sf.stripe_to_camera(cam, plane, _grid().astype(jnp.float16))

@@ -37,7 +37,22 @@ class AbstractCamera(eqx.Module):
 
     @abc.abstractmethod
     def backproject_one(self, uv: Float[Array, "2"]) -> Ray:
-        """The object-space ray of one pixel."""
+        """The object-space ray of one pixel (NaN where the pixel has no ray)."""
+
+    def backproject_one_with_mask(self, uv: Float[Array, "2"]) -> tuple[Ray, Bool[Array, ""]]:
+        """The ray of one pixel and whether it is valid, NaN-free even where it is not.
+
+        Where the ray is invalid (a non-finite pixel, a failed undistortion) the returned
+        ray is a finite stand-in, so that a masked loss built on it has finite gradients
+        for every shared parameter (the double-`where` pattern: NaN never enters the
+        computation, instead of being masked afterwards). Cameras whose
+        `backproject_one` can produce NaN internally override this; the default covers
+        models whose only NaN source is the pixel itself.
+        """
+        ok_px = jnp.all(jnp.isfinite(uv))
+        ray = self.backproject_one(jnp.where(ok_px, uv, jnp.zeros_like(uv)))
+        ok = ok_px & jnp.all(jnp.isfinite(ray.direction)) & jnp.all(jnp.isfinite(ray.origin))
+        return _finite_ray(ray, ok), ok
 
     def project(self, X: ArrayLike) -> Float[Array, "*batch 2"]:
         """Pixels of camera-frame points (mm → px).
@@ -58,7 +73,21 @@ class AbstractCamera(eqx.Module):
         X = as_points(X, 3, "X")
         return batched(self.project_one, X, 1)
 
+    def backproject_with_mask(self, uv: ArrayLike) -> tuple[Ray, Bool[Array, "*batch"]]:
+        """Rays of pixels (finite stand-ins where invalid) and a mask of the valid ones."""
+        uv = as_points(uv, 2, "uv")
+        return batched(self.backproject_one_with_mask, uv, 1)
+
     def backproject(self, uv: ArrayLike) -> Ray:
         """Object-space rays of pixels; `Ray` fields have shape `(*batch, 3)`."""
         uv = as_points(uv, 2, "uv")
         return batched(self.backproject_one, uv, 1)
+
+
+def _finite_ray(ray: Ray, ok) -> Ray:
+    """`ray` where `ok`, else the optical axis (a finite stand-in; gradients stay finite)."""
+    axis = jnp.zeros_like(ray.direction).at[..., 2].set(1.0)
+    return Ray(
+        jnp.where(ok, ray.origin, jnp.zeros_like(ray.origin)),
+        jnp.where(ok, ray.direction, axis),
+    )

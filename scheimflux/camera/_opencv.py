@@ -192,9 +192,19 @@ class OpenCVCamera(AbstractCamera):
         return uv, valid
 
     def backproject_one(self, uv):
+        ray, ok = self.backproject_one_with_mask(uv)
+        return Ray(jnp.where(ok, ray.origin, jnp.nan), jnp.where(ok, ray.direction, jnp.nan))
+
+    def backproject_one_with_mask(self, uv):
+        # Double `where` (see AbstractCamera.backproject_one_with_mask): stand-ins for a
+        # non-finite pixel and a failed undistortion keep every primal value finite.
+        ok = jnp.all(jnp.isfinite(uv))
+        uv = jnp.where(ok, uv, jnp.stack([self.cx, self.cy]).astype(uv.dtype))
         xy_t = jnp.stack([(uv[0] - self.cx) / self.fx, (uv[1] - self.cy) / self.fy])
         _, inv_tilt = self.tilt_matrices
         xy_d = _dehomogenise(inv_tilt @ jnp.append(xy_t, jnp.ones((), xy_t.dtype)))
-        xy, _ = self.distortion.undistort(xy_d)  # NaN where not converged
+        xy, ok_u = self.distortion.undistort(xy_d)  # NaN where not converged
+        ok = ok & ok_u & jnp.all(jnp.isfinite(xy_d))
+        xy = jnp.where(ok, xy, jnp.zeros_like(xy))
         d = jnp.append(xy, jnp.ones((), xy.dtype))
-        return Ray(jnp.zeros_like(d), d / jnp.linalg.norm(d))
+        return Ray(jnp.zeros_like(d), d / jnp.linalg.norm(d)), ok

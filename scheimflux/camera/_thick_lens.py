@@ -132,12 +132,26 @@ class ThickLensScheimpflug(AbstractCamera):
         return uv, valid
 
     def backproject_one(self, uv):
+        ray, ok = self.backproject_one_with_mask(uv)
+        return Ray(jnp.where(ok, ray.origin, jnp.nan), jnp.where(ok, ray.direction, jnp.nan))
+
+    def backproject_one_with_mask(self, uv):
+        # Double `where`: a non-finite pixel or a failed undistortion is replaced by a
+        # finite stand-in (the principal pixel / the distorted point) *before* the rest of
+        # the computation, so NaN never reaches the primal values and a masked loss keeps
+        # finite gradients for the shared parameters.
+        ok = jnp.all(jnp.isfinite(uv))
+        uv = jnp.where(ok, uv, jnp.stack([self.x0, self.y0]).astype(uv.dtype))
         if self.is_distorted:
-            xi, ok = self._undistort(self._untilted(self.sensor_point(uv)))
+            xi, ok_u = self._undistort(self._untilted(self.sensor_point(uv)))
             uv = self._sensor_pixel(xi)
-            uv = jnp.where(ok, uv, jnp.nan)
-        P = self.object_point(uv)
-        return Ray(jnp.zeros_like(P), P / jnp.linalg.norm(P))
+            ok = ok & ok_u
+        Ph = self.pixel_to_object_matrix() @ _homogeneous(uv)
+        ok = ok & (Ph[3] != 0) & jnp.all(jnp.isfinite(Ph))
+        P = Ph[:3] / jnp.where(ok, Ph[3], jnp.ones_like(Ph[3]))
+        ok = ok & (jnp.sum(P * P) > 0)
+        P = jnp.where(ok, P, jnp.zeros_like(P).at[2].set(1.0))
+        return Ray(jnp.zeros_like(P), P / jnp.linalg.norm(P)), ok
 
     def _undistort(self, xi_d: Float[Array, "2"]) -> tuple[Float[Array, "2"], Bool[Array, ""]]:
         """Invert the distortion by fixed-point iteration, convergence-checked.
@@ -145,8 +159,9 @@ class ThickLensScheimpflug(AbstractCamera):
         In the untilted plane of a Scheimpflug camera the field is small (|ξ| ≲ 0.02) and
         the distortion's Jacobian is close to the identity, so `ξ ← ξ_d − δ(ξ)` contracts
         by orders of magnitude per step: a few steps reach float64 precision with no
-        Jacobian. Where it has not converged (strong distortion, beyond a fold) the
-        pixel is flagged: its ray is NaN (and reconstruction reports INVALID_PIXEL).
+        Jacobian. Where it has not converged (strong distortion, beyond a fold) the flag
+        is False and the returned point is the finite stand-in `ξ_d` (the caller masks
+        it: `backproject_one` gives a NaN ray, reconstruction reports INVALID_PIXEL).
         """
         # Iterate on constants; the derivative comes from one Newton step at the fixed
         # point (implicit function theorem: dξ = J⁻¹ (dξ_d − ∂δ/∂k dk), J = ∂distort/∂ξ),
@@ -157,12 +172,15 @@ class ThickLensScheimpflug(AbstractCamera):
         xi = target
         for _ in range(_FIXED_POINT_STEPS):
             xi = target - (dist.distort(xi) - xi)
+        xi_c = xi - _solve2(jax.jacfwd(dist.distort)(xi), dist.distort(xi) - target)
+        err = jnp.max(jnp.abs(dist.distort(xi_c) - target))
+        tol = 1e-13 if xi_d.dtype == jnp.float64 else 1e-6
+        ok = jnp.isfinite(err) & (err <= tol * jnp.maximum(1.0, jnp.max(jnp.abs(xi_d))))
+        # The differentiable Newton step starts from a finite point in every case.
+        xi = jnp.where(ok, xi, target)
         J = jax.jacfwd(dist.distort)(xi)
         xi = xi - _solve2(J, self.distortion.distort(xi) - xi_d)
-        err = jnp.max(jnp.abs(dist.distort(jax.lax.stop_gradient(xi)) - target))
-        tol = 1e-13 if xi_d.dtype == jnp.float64 else 1e-6
-        ok = err <= tol * jnp.maximum(1.0, jnp.max(jnp.abs(xi_d)))
-        return jnp.where(ok, xi, jnp.nan), ok
+        return jnp.where(ok, xi, xi_d), ok
 
     def _untilted(self, P_image: Float[Array, "3"]) -> Float[Array, "2"]:
         """Normalised coordinates ξ where the ray H′ → P′ meets the plane z = −z0."""

@@ -30,6 +30,37 @@ def refuse_to_clobber(*paths: str, overwrite: bool) -> None:
             raise CLIError(f"{path} exists; pass --overwrite to replace it")
 
 
+def check_output(path: str, *, overwrite: bool) -> str:
+    """Check, before any long computation, that the output file `path` can be written:
+    it does not exist (unless `overwrite`), it is not a folder, and its folder exists and
+    accepts a new file. Raises `CLIError` naming the path; returns `path`."""
+    from ..io._files import check_writable
+
+    try:
+        return check_writable(path, overwrite=overwrite)
+    except FileExistsError:
+        raise  # "PATH exists; pass overwrite=True (--overwrite) to replace it"
+    except OSError as err:
+        raise CLIError(str(err)) from None
+
+
+def check_output_folder(folder: str) -> str:
+    """Create the output folder `folder` if missing and check a file can be written into
+    it, before any long computation. Raises `CLIError` naming the folder."""
+    from ..io._files import check_folder_writable
+
+    if os.path.lexists(folder) and not os.path.isdir(folder):
+        raise CLIError(f"output folder {folder} exists and is not a folder")
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as err:
+        raise CLIError(f"cannot create output folder {folder} ({err.strerror or err})") from None
+    try:
+        return check_folder_writable(folder)
+    except OSError as err:
+        raise CLIError(str(err)) from None
+
+
 def require_positive(args, *names: str, zero_ok: bool = False) -> None:
     """Each option `names` (argparse dests) must be a finite number > 0 (>= 0 with
     `zero_ok`); an option left at None is skipped. The message names the flag:

@@ -22,7 +22,7 @@ import argparse
 import math
 import os
 
-from ._common import CLIError, refuse_to_clobber, require_positive
+from ._common import CLIError, check_output_folder, refuse_to_clobber, require_positive
 
 _FILES = ("observations.json", "truth.json", "scan_stripes.json")
 
@@ -117,8 +117,34 @@ def _build_rig(args):
     return build_rig(lens, args.magnification, refine=refine)
 
 
+def _swap_in(staging: str, out: str, names: list[str]) -> None:
+    """Move the finished outputs `names` from `staging` into `out`.
+
+    Old outputs are first moved aside into a hidden folder, then the new ones are moved
+    in (renames only, in one file system), then the old ones are deleted. A kill at any
+    point leaves `out` holding old files only or new files only, never a mix; what was
+    moved aside stays in `.tmp-simulate-old-*` until then.
+    """
+    import shutil
+    import tempfile
+
+    aside = tempfile.mkdtemp(prefix=".tmp-simulate-old-", dir=out)
+    try:
+        for name in names:
+            target = os.path.join(out, name)
+            if os.path.lexists(target):
+                os.replace(target, os.path.join(aside, name))
+        for name in names:
+            os.replace(os.path.join(staging, name), os.path.join(out, name))
+    finally:
+        shutil.rmtree(aside, ignore_errors=True)
+
+
 def run(args) -> int:
     _check(args)
+    import shutil
+    import tempfile
+
     from ..io._observations import write_observations
     from ..io._stripes import write_stripes
     from ..simulate._observe import simulate_observations, write_truth
@@ -130,7 +156,8 @@ def run(args) -> int:
     paths = [os.path.join(out, name) for name in _FILES]
     images = os.path.join(out, "images")
     outputs = list(paths)
-    if getattr(args, "images", False) and os.path.isdir(images):
+    with_images = bool(getattr(args, "images", False))
+    if with_images and os.path.isdir(images):
         if any(n.endswith(".png") for n in os.listdir(images)):  # an earlier --images run
             outputs.append(images)
     refuse_to_clobber(*outputs, overwrite=args.overwrite)
@@ -138,6 +165,7 @@ def run(args) -> int:
     if square is None:
         square = round(0.3 * 1.5 / args.magnification, 3)
     board = Checkerboard.parse(args.board, square)
+    check_output_folder(out)  # before the ray tracing, not after it
 
     rig = _build_rig(args)
     obs, truth = simulate_observations(
@@ -152,11 +180,41 @@ def run(args) -> int:
         gauge_radius_mm=args.gauge_radius_mm,
         seed=args.seed,
     )
-    os.makedirs(out, exist_ok=True)
-    write_observations(paths[0], obs, overwrite=args.overwrite)
-    write_truth(paths[1], truth, overwrite=args.overwrite)
-    frames = [] if obs.stage is None else obs.stage.frames
-    write_stripes(paths[2], frames, overwrite=args.overwrite)
+    # Every output is written into a hidden staging folder first and swapped in at the
+    # end, so an interrupted run (--overwrite or not) never leaves new and old files
+    # side by side (e.g. a new observations.json beside an old truth.json).
+    staging = tempfile.mkdtemp(prefix=".tmp-simulate-", dir=out)
+    try:
+        staged = [os.path.join(staging, name) for name in _FILES]
+        write_observations(staged[0], obs)
+        write_truth(staged[1], truth)
+        frames = [] if obs.stage is None else obs.stage.frames
+        write_stripes(staged[2], frames)
+        names = list(_FILES)
+        if with_images:
+            import time
+
+            from ..simulate._images import write_scene_images
+
+            t0 = time.perf_counter()
+            written = write_scene_images(
+                os.path.join(staging, "images"),
+                rig,
+                board,
+                truth,
+                ambient=args.ambient,
+                seed=args.seed,
+                overwrite=True,
+            )
+            dt = time.perf_counter() - t0
+            names.append("images")
+        if not args.overwrite:  # a file may have appeared during the run
+            refuse_to_clobber(*paths, overwrite=False)
+            if with_images and os.path.isdir(images) and os.listdir(images):
+                raise CLIError(f"{images} is not empty; pass --overwrite to replace it")
+        _swap_in(staging, out, names)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
     _, mask = obs.corners()
     stripe_pts = sum(len(v.stripe_px) for v in obs.views)
@@ -177,16 +235,7 @@ def run(args) -> int:
             f"{obs.stage.delta_omega_deg:g} deg apart, {scan_pts} stripe points"
         )
     print(f"wrote {', '.join(paths)}")
-    if getattr(args, "images", False):
-        import time
-
-        from ..simulate._images import write_scene_images
-
-        t0 = time.perf_counter()
-        written = write_scene_images(
-            images, rig, board, truth, ambient=args.ambient, seed=args.seed, overwrite=True
-        )
-        dt = time.perf_counter() - t0
+    if with_images:
         print(
             f"rendered {len(written)} images into {images} (scan frames in "
             f"{os.path.join(images, 'scan')}) in {dt:.1f} s"

@@ -7,8 +7,10 @@ Naming follows `T_a_b`: the transform maps coordinates in frame b to frame a,
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -70,6 +72,16 @@ class Pose(eqx.Module):
         R = jnp.asarray(R, dtype=float)
         if R.shape != (3, 3):
             raise ValueError(f"rotation matrix must be 3x3, got {R.shape}")
+        if not isinstance(R, jax.core.Tracer):  # concrete: refuse what is not a rotation
+            Rn = np.asarray(R)
+            if not np.all(np.isfinite(Rn)):
+                raise ValueError("rotation matrix is not finite")
+            err = float(np.max(np.abs(Rn @ Rn.T - np.eye(3))))
+            if err > 1e-6 or np.linalg.det(Rn) < 0:
+                raise ValueError(
+                    f"not a rotation matrix (|R Rᵀ − I| = {err:.2g}, det = "
+                    f"{np.linalg.det(Rn):.6g}; need an orthonormal matrix with det +1)"
+                )
         return cls(rotation_vector(R), t)
 
     @classmethod

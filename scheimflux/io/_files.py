@@ -1,12 +1,34 @@
-"""Small helpers for the files users exchange: JSON loading with clear errors, and
-atomic writes that never clobber an existing file by accident."""
+"""Small helpers for the files users exchange: JSON loading with clear errors, and one
+atomic writer that never clobbers an existing file by accident.
+
+Every file the package writes goes through `atomic_output` (or `write_atomic`, built
+on it): the content is written to a hidden temporary file beside the target
+(`.tmp-<name>-XXXX`) and then moved into place in one step:
+
+- without `overwrite`, by `os.link(tmp, path)`, which fails if `path` exists — also if it
+  appeared after the first check (no check-then-replace race). On a file system without
+  hard links the target is reserved with `O_CREAT | O_EXCL` and then replaced;
+- with `overwrite`, by `os.replace`, so readers see the old file or the new one, never a
+  partial one.
+
+The temporary file is removed on any failure, including `KeyboardInterrupt` and
+`SIGTERM` (converted to an exception while a write is in progress); only a `SIGKILL`
+or a power cut between the write and the move can leave a `.tmp-*` file behind.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
+import signal
 import tempfile
+import threading
+from collections.abc import Iterator
 from typing import Any
+
+TMP_PREFIX = ".tmp-"
 
 
 def load_json(path: str | os.PathLike, what: str) -> Any:
@@ -14,6 +36,8 @@ def load_json(path: str | os.PathLike, what: str) -> Any:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} file not found: {path}")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a folder, not a {what} file")
     try:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
@@ -21,39 +45,154 @@ def load_json(path: str | os.PathLike, what: str) -> Any:
         raise ValueError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text (UTF-8 JSON) file") from None
+    except PermissionError:
+        raise PermissionError(f"{path}: no permission to read it") from None
 
 
 def check_writable(path: str | os.PathLike, *, overwrite: bool) -> str:
-    """Refuse to replace an existing file unless asked; check the folder exists."""
+    """Refuse to replace an existing file unless asked; check the folder exists and can be
+    written to (so a long computation does not end in a failed write).
+
+    **Returns:** `path` as a string. **Raises:** `FileExistsError`, `FileNotFoundError`
+    (missing folder), `PermissionError` (folder not writable), `IsADirectoryError`.
+    """
     path = os.fspath(path)
-    if os.path.exists(path) and not overwrite:
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"{path} is a folder; give a file name")
+    if os.path.lexists(path) and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
     folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"output folder does not exist: {folder}")
+    check_folder_writable(folder)
     return path
 
 
-def write_atomic(path: str | os.PathLike, data: bytes | str, *, overwrite: bool = False) -> None:
-    """Write a file via a temporary file in the same folder and `os.replace`.
+def check_folder_writable(folder: str | os.PathLike) -> str:
+    """Check that `folder` exists and a file can be created in it (by creating and
+    removing a temporary file: permission bits alone miss read-only mounts).
 
-    A failure part-way leaves any existing file untouched.
+    **Raises:** `FileNotFoundError`, `NotADirectoryError` or `PermissionError`, naming
+    the folder.
+    """
+    folder = os.fspath(folder)
+    if not os.path.exists(folder):
+        raise FileNotFoundError(f"output folder does not exist: {folder}")
+    if not os.path.isdir(folder):
+        raise NotADirectoryError(f"output folder is not a folder: {folder}")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=TMP_PREFIX + "probe-", dir=folder)
+    except OSError as err:
+        raise PermissionError(
+            f"cannot write into output folder {folder} ({err.strerror or err})"
+        ) from None
+    os.close(fd)
+    os.unlink(probe)
+    return folder
+
+
+@contextlib.contextmanager
+def _sigterm_as_exception() -> Iterator[None]:
+    """While writing, turn SIGTERM into `KeyboardInterrupt` so cleanup runs (main thread
+    only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum} during a file write")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # no signals here
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _exists_error(path: str) -> FileExistsError:
+    return FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
+
+
+def _commit(tmp: str, path: str, overwrite: bool) -> None:
+    """Move the finished temporary file `tmp` to `path` in one step (see module doc)."""
+    if overwrite:
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)  # atomic, and fails if path exists (even if it just appeared)
+    except FileExistsError:
+        raise _exists_error(path) from None
+    except OSError as err:
+        if err.errno not in (
+            errno.EPERM,
+            errno.EOPNOTSUPP,
+            errno.ENOTSUP,
+            errno.EXDEV,
+            errno.EMLINK,
+        ):
+            raise
+        # No hard links here: reserve the name exclusively, then replace the placeholder.
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+        except FileExistsError:
+            raise _exists_error(path) from None
+        os.close(fd)
+        os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def atomic_output(
+    path: str | os.PathLike, *, overwrite: bool = False, suffix: str = ""
+) -> Iterator[str]:
+    """A temporary file name beside `path`; on a clean exit it is moved to `path`.
+
+    For writers that take a file name (`cv2.imwrite`, `cv2.FileStorage`): write to the
+    yielded name inside the `with` block. `suffix` (e.g. `".png"`) keeps the extension
+    such writers read the format from. On an exception nothing is moved and the
+    temporary file is removed; an existing `path` is refused before anything is written
+    unless `overwrite`.
     """
     path = check_writable(path, overwrite=overwrite)
-    mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(os.path.abspath(path)))
-    try:
-        with os.fdopen(fd, mode, **({} if mode == "wb" else {"encoding": "utf-8"})) as fh:
-            fh.write(data)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    folder = os.path.dirname(os.path.abspath(path))
+    with _sigterm_as_exception():
+        fd, tmp = tempfile.mkstemp(
+            prefix=f"{TMP_PREFIX}{os.path.basename(path)}-", suffix=suffix, dir=folder
+        )
+        os.close(fd)
+        try:
+            yield tmp
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
+            _commit(tmp, path, overwrite)
+        finally:
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
+
+
+def write_atomic(path: str | os.PathLike, data: bytes | str, *, overwrite: bool = False) -> None:
+    """Write `data` to `path` atomically and without clobbering (see the module doc).
+
+    **Raises:** `FileExistsError` if `path` exists (checked again at the final move) and
+    `overwrite` is False; `FileNotFoundError` / `PermissionError` for the folder.
+    """
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        if isinstance(data, bytes):
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+        else:
+            with open(tmp, "w", encoding="utf-8") as fh:
+                fh.write(data)
 
 
 def write_json(path, obj, *, overwrite: bool = False) -> None:
-    write_atomic(path, json.dumps(obj, indent=1, allow_nan=False) + "\n", overwrite=overwrite)
+    """Write `obj` as indented JSON (NaN and infinity refused) with `write_atomic`."""
+    try:
+        text = json.dumps(obj, indent=1, allow_nan=False) + "\n"
+    except ValueError as err:  # "Out of range float values are not JSON compliant"
+        raise ValueError(
+            f"{os.fspath(path)}: refusing to write non-finite numbers (NaN/inf): {err}"
+        ) from None
+    write_atomic(path, text, overwrite=overwrite)

@@ -23,6 +23,7 @@ without these keys (older files) read as before.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 
@@ -32,8 +33,11 @@ from ._files import load_json, write_json
 
 FORMAT = "scheimflux.observations/1"
 
-# The keys each level of the document may hold (for validation of unknown keys).
-TOP_KEYS = ("format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage")
+# The keys each level of the file may hold; anything else is refused (a misspelt optional
+# key would otherwise be ignored silently and change the result). "comment" is free text.
+TOP_KEYS = (
+    "format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage", "comment",
+)  # fmt: skip
 SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
 NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
 VIEW_KEYS = ("corners_px", "stripe_px", "source")
@@ -132,6 +136,18 @@ def _require(d: dict, key: str, where: str):
     return d[key]
 
 
+def _check_keys(d, allowed: tuple[str, ...], where: str) -> None:
+    """Refuse keys of the object `d` not in `allowed`, suggesting the closest allowed one."""
+    if not isinstance(d, dict):
+        return  # the caller reports the wrong type
+    for key in d:
+        if key not in allowed:
+            close = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            at = f"{where}.{key}" if where else str(key)
+            raise ObservationsError(f"unknown key {at!r}{hint}; allowed here: {', '.join(allowed)}")
+
+
 def _number(value, where: str, *, positive: bool = False) -> float:
     if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
         raise ObservationsError(f"{where} must be a finite number, got {value!r}")
@@ -147,7 +163,9 @@ def parse_observations(doc) -> Observations:
     fmt = doc.get("format")
     if fmt != FORMAT:
         raise ObservationsError(f"format must be {FORMAT!r}, got {fmt!r}")
+    _check_keys(doc, TOP_KEYS, "")
     sensor = _require(doc, "sensor", "")
+    _check_keys(sensor, SENSOR_KEYS, "sensor")
     width = _number(_require(sensor, "width", "sensor"), "sensor.width", positive=True)
     height = _number(_require(sensor, "height", "sensor"), "sensor.height", positive=True)
     pitch = sensor.get("pixel_pitch_mm")
@@ -161,6 +179,7 @@ def parse_observations(doc) -> Observations:
         nd = doc["nominal"]
         if not isinstance(nd, dict):
             raise ObservationsError("nominal must be an object")
+        _check_keys(nd, NOMINAL_KEYS, "nominal")
         tilt = nd.get("tilt_deg")
         if tilt is not None:
             if not isinstance(tilt, list) or len(tilt) != 2:
@@ -182,6 +201,7 @@ def parse_observations(doc) -> Observations:
         raise ObservationsError("views must be a list")
     views = []
     for i, vd in enumerate(views_doc):
+        _check_keys(vd, VIEW_KEYS, f"views[{i}]")
         corners = _points(
             _require(vd, "corners_px", f"views[{i}]"), f"views[{i}].corners_px", 2, allow_null=True
         )
@@ -199,6 +219,7 @@ def parse_observations(doc) -> Observations:
         raise ObservationsError("dropped_views must be a list")
     for i, dd in enumerate(dropped_doc):
         where = f"dropped_views[{i}]"
+        _check_keys(dd, DROPPED_KEYS, where)
         k = _require(dd, "view", where)
         if not isinstance(k, int) or isinstance(k, bool) or k < 0:
             raise ObservationsError(f"{where}.view must be a view number >= 0, got {k!r}")
@@ -210,6 +231,7 @@ def parse_observations(doc) -> Observations:
     stage = None
     if doc.get("stage") is not None:
         sd = doc["stage"]
+        _check_keys(sd, STAGE_KEYS, "stage")
         dw = _number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg")
         r = _number(
             _require(sd, "gauge_radius_mm", "stage"), "stage.gauge_radius_mm", positive=True

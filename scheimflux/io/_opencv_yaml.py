@@ -9,13 +9,13 @@ the file's extension).
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ..camera._opencv import OpenCVCamera, opencv_dist_coeffs
+from ._files import atomic_output
 
 
 def _shortest_dist(dist14: np.ndarray) -> np.ndarray:
@@ -59,11 +59,7 @@ def write_opencv_yaml(
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
         raise ValueError("camera parameters must be finite")
 
-    fd, tmp = tempfile.mkstemp(
-        dir=path.parent, prefix=f".{path.stem}.", suffix="".join(path.suffixes) or ".yaml"
-    )
-    os.close(fd)
-    try:
+    with atomic_output(path, overwrite=overwrite, suffix="".join(path.suffixes) or ".yaml") as tmp:
         fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
         if not fs.isOpened():
             raise OSError(f"cv2.FileStorage could not open {tmp} for writing")
@@ -74,22 +70,6 @@ def write_opencv_yaml(
             fs.write("distortion_coefficients", _shortest_dist(dist).reshape(-1, 1))
         finally:
             fs.release()
-        if overwrite:
-            os.replace(tmp, path)
-        else:
-            try:
-                os.link(tmp, path)  # atomic: fails if path appeared meanwhile
-            except FileExistsError:
-                raise FileExistsError(f"{path} exists; pass overwrite=True to replace it") from None
-            except OSError:  # no hard links on this file system
-                if path.exists():
-                    raise FileExistsError(
-                        f"{path} exists; pass overwrite=True to replace it"
-                    ) from None
-                os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

@@ -23,6 +23,8 @@ class Status(enum.IntEnum):
     INVALID_PIXEL = 1  # non-finite pixel coordinates (e.g. a gap in the stripe)
     PARALLEL = 2  # the pixel's ray is parallel to the laser plane
     BEHIND_CAMERA = 3  # the intersection lies behind the ray's origin
+    DEGENERATE_PLANE = 4  # the laser plane is not finite or passes through the camera centre
+    OUTSIDE_SENSOR = 5  # the pixel lies outside the sensor given as `sensor_size`
 
 
 class Reconstruction(eqx.Module):
@@ -45,26 +47,64 @@ class Reconstruction(eqx.Module):
 # the plane normal is below this (about 0.06 degrees from grazing).
 PARALLEL_COS = 1e-3
 
+# A laser plane closer than this to the camera centre (the ray origin) is degenerate: every
+# ray meets it next to the centre, so all points collapse onto one spot. 1 µm is below the
+# object-side footprint of one pixel of any rig this package models (3.45–5.5 µm pixels at
+# |β| ≤ 2 give ≥ 1.7 µm), so such a plane cannot separate two pixels: it carries no depth.
+DEGENERATE_PLANE_MM = 1e-3
 
-def intersect_ray_plane(ray: Ray, plane: LaserPlane) -> tuple[Float[Array, "3"], Int8[Array, ""]]:
-    """Intersection of one ray with the plane `n · X = 1`, and its `Status` code."""
+
+def _plane_ok(plane: LaserPlane) -> Bool[Array, ""]:
+    """Whether the plane is finite and at least `DEGENERATE_PLANE_MM` from the origin."""
     n = plane.n
-    denom = jnp.dot(n, ray.direction)
-    numer = 1.0 - jnp.dot(n, ray.origin)
-    cos = jnp.abs(denom) / jnp.linalg.norm(n)
+    nn = jnp.sum(n * n)
+    return jnp.all(jnp.isfinite(n)) & (nn > 0) & (nn < 1.0 / DEGENERATE_PLANE_MM**2)
+
+
+def intersect_ray_plane(
+    ray: Ray, plane: LaserPlane, ray_ok: Bool[ArrayLike, ""] = True
+) -> tuple[Float[Array, "3"], Int8[Array, ""]]:
+    """Intersection of one ray with the plane `n · X = 1`, and its `Status` code.
+
+    **Arguments:**
+    - `ray`: one ray (its origin and unit direction, shape `(3,)` each).
+    - `plane`: the laser plane.
+    - `ray_ok`: False marks a ray known to be invalid (from
+      `AbstractCamera.backproject_one_with_mask`).
+
+    **Returns:** `(X (3,), status)`; `X` is NaN unless the status is `Status.OK`. Every
+    intermediate value stays finite whatever the inputs (stand-ins replace invalid
+    rays and planes before the arithmetic), so gradients of a loss that masks invalid
+    points are finite.
+    """
+    finite = (
+        jnp.asarray(ray_ok)
+        & jnp.all(jnp.isfinite(ray.direction))
+        & jnp.all(jnp.isfinite(ray.origin))
+    )
+    origin = jnp.where(finite, ray.origin, jnp.zeros_like(ray.origin))
+    direction = jnp.where(finite, ray.direction, jnp.zeros_like(ray.direction).at[2].set(1.0))
+    plane_ok = _plane_ok(plane)
+    n = jnp.where(plane_ok, plane.n, jnp.zeros_like(plane.n).at[2].set(1.0))
+    denom = jnp.dot(n, direction)
+    numer = 1.0 - jnp.dot(n, origin)
+    cos = jnp.abs(denom) / (jnp.linalg.norm(n) * jnp.linalg.norm(direction))
     parallel = cos < PARALLEL_COS
     safe = jnp.where(parallel, jnp.ones_like(denom), denom)
     t = numer / safe
-    X = ray.origin + t * ray.direction
-    finite = jnp.all(jnp.isfinite(ray.direction)) & jnp.all(jnp.isfinite(ray.origin))
+    X = origin + t * direction
     code = {s: jnp.int8(s) for s in Status}
     status = jnp.where(
         ~finite,
         code[Status.INVALID_PIXEL],
         jnp.where(
-            parallel,
-            code[Status.PARALLEL],
-            jnp.where(t <= 0, code[Status.BEHIND_CAMERA], code[Status.OK]),
+            ~plane_ok,
+            code[Status.DEGENERATE_PLANE],
+            jnp.where(
+                parallel,
+                code[Status.PARALLEL],
+                jnp.where(t <= 0, code[Status.BEHIND_CAMERA], code[Status.OK]),
+            ),
         ),
     )
     return jnp.where(status == code[Status.OK], X, jnp.nan), status
@@ -74,21 +114,60 @@ def _cast_floats(tree, dtype):
     return jax.tree.map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, tree)
 
 
-def _pixel_to_camera(camera: AbstractCamera, plane: LaserPlane, uv):
-    X, status = intersect_ray_plane(camera.backproject_one(uv), plane)
-    bad_pixel = ~jnp.all(jnp.isfinite(uv))
-    status = jnp.where(bad_pixel, jnp.int8(Status.INVALID_PIXEL), status)
+def _pixel_to_camera(camera: AbstractCamera, plane: LaserPlane, uv, sensor):
+    ok_px = jnp.all(jnp.isfinite(uv))
+    ray, ok = camera.backproject_one_with_mask(uv)
+    X, status = intersect_ray_plane(ray, plane, ok)
+    status = jnp.where(ok_px, status, jnp.int8(Status.INVALID_PIXEL))
+    if sensor is not None:
+        # Pixel (0, 0) is the centre of the top-left pixel: the sensor spans
+        # [-0.5, w - 0.5] x [-0.5, h - 0.5].
+        inside = jnp.all((uv >= -0.5) & (uv <= sensor - 0.5))
+        status = jnp.where(
+            ok_px & ~inside & (status != Status.INVALID_PIXEL),
+            jnp.int8(Status.OUTSIDE_SENSOR),
+            status,
+        )
+        X = jnp.where(status == Status.OK, X, jnp.nan)
     return X, status
 
 
 @eqx.filter_jit
-def _stripe_to_camera(camera, plane, uv):
+def _stripe_to_camera(camera, plane, uv, sensor=None):
     flat = uv.reshape(-1, 2)
-    X, status = jax.vmap(_pixel_to_camera, in_axes=(None, None, 0))(camera, plane, flat)
+    X, status = jax.vmap(_pixel_to_camera, in_axes=(None, None, 0, None))(
+        camera, plane, flat, sensor
+    )
     return Reconstruction(X.reshape(uv.shape[:-1] + (3,)), status.reshape(uv.shape[:-1]))
 
 
-def stripe_to_camera(camera: AbstractCamera, plane: LaserPlane, uv: ArrayLike) -> Reconstruction:
+def _check_plane(plane: LaserPlane) -> None:
+    if not isinstance(plane, LaserPlane):
+        raise TypeError(f"plane must be a LaserPlane, got {type(plane).__name__}")
+
+
+def _sensor(sensor_size, dtype):
+    """`(w, h)` in pixels as an array, checked; None stays None."""
+    if sensor_size is None:
+        return None
+    try:
+        w, h = (float(v) for v in sensor_size)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"sensor_size must be (width, height) in pixels, got {sensor_size!r}"
+        ) from None
+    if not (np.isfinite(w) and np.isfinite(h) and w >= 1 and h >= 1):
+        raise ValueError(f"sensor_size must be two positive pixel counts, got {sensor_size!r}")
+    return jnp.asarray([w, h], dtype=dtype)
+
+
+def stripe_to_camera(
+    camera: AbstractCamera,
+    plane: LaserPlane,
+    uv: ArrayLike,
+    *,
+    sensor_size: tuple[int, int] | None = None,
+) -> Reconstruction:
     """Reconstruct laser-stripe pixels as 3-D points in the camera frame (paper eq. 3).
 
     Each pixel's ray (`camera.backproject`) is intersected with the laser plane
@@ -98,21 +177,25 @@ def stripe_to_camera(camera: AbstractCamera, plane: LaserPlane, uv: ArrayLike) -
     **Arguments:**
     - `camera`: any camera model.
     - `plane`: the laser plane in the camera frame.
-    - `uv`: stripe pixels, shape `(*batch, 2)`, float32 or float64; NaN marks a missing
-      pixel. Computation runs in the dtype of `uv`.
+    - `uv`: stripe pixels, shape `(*batch, 2)`, float32 or float64 (float16 is refused:
+      its spacing is 1 px above u = 1024); NaN marks a missing pixel. Computation runs
+      in the dtype of `uv`.
+    - `sensor_size`: optional `(width, height)` of the sensor in pixels; pixels outside
+      `[-0.5, width - 0.5] × [-0.5, height - 0.5]` get `Status.OUTSIDE_SENSOR`.
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
-    intersection behind the camera).
+    intersection behind the camera, degenerate plane, outside the sensor).
     """
+    _check_plane(plane)
     uv = as_points(uv, 2, "uv")
     camera, plane = _cast_floats((camera, plane), uv.dtype)
-    return _stripe_to_camera(camera, plane, uv)
+    return _stripe_to_camera(camera, plane, uv, _sensor(sensor_size, uv.dtype))
 
 
 @eqx.filter_jit
-def _stripe_to_measurement(camera, plane, stage, uv, frame_index):
-    rec = _stripe_to_camera(camera, plane, uv)
+def _stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
+    rec = _stripe_to_camera(camera, plane, uv, sensor)
     to_m = stage.to_measurement
     for _ in range(uv.ndim - 1):
         to_m = jax.vmap(to_m)
@@ -126,6 +209,8 @@ def stripe_to_measurement(
     stage: RotaryStage,
     uv: ArrayLike,
     frame_index: ArrayLike,
+    *,
+    sensor_size: tuple[int, int] | None = None,
 ) -> Reconstruction:
     """Reconstruct stripe pixels in the measurement (rotary-table) frame (paper eq. 13).
 
@@ -134,22 +219,34 @@ def stripe_to_measurement(
 
     **Arguments:**
     - `uv`: stripe pixels, shape `(*batch, 2)`, e.g. `(frames, points, 2)`.
-    - `frame_index`: the frame number of each pixel: an integer, an array broadcastable
-      to `uv.shape[:-1]`, or shape `(frames,)` when `uv` is `(frames, points, 2)`.
+    - `frame_index`: the frame number of each pixel: a scalar, or an array with as many
+      axes as `uv.shape[:-1]`, each of length 1 or equal to that axis, e.g.
+      `np.arange(frames)[:, None]` (shape `(frames, 1)`) for one index per frame of
+      `(frames, points, 2)` pixels. An index with fewer axes than the batch is refused
+      rather than guessed: `(frames,)` against `(frames, points)` would be read along the
+      points by NumPy's rules when `frames == points`.
+    - `sensor_size`: as in `stripe_to_camera`.
 
     **Returns:** a `Reconstruction` in the measurement frame.
     """
+    _check_plane(plane)
     uv = as_points(uv, 2, "uv")
     batch = uv.shape[:-1]
-    fi = np.asarray(frame_index) if not isinstance(frame_index, jax.Array) else frame_index
-    if fi.ndim == 1 and len(batch) >= 2 and fi.shape[0] == batch[0] and fi.shape != batch[-1:]:
-        fi = fi.reshape(fi.shape + (1,) * (len(batch) - 1))
-    try:
-        fi = jnp.broadcast_to(jnp.asarray(fi), batch)
-    except ValueError:
+    fi = frame_index if isinstance(frame_index, jax.Array) else np.asarray(frame_index)
+    if not (jnp.issubdtype(fi.dtype, jnp.integer) or jnp.issubdtype(fi.dtype, jnp.floating)):
+        raise ValueError(f"frame_index must be numbers, got dtype {fi.dtype}")
+    ok = fi.ndim == 0 or (
+        fi.ndim == len(batch) and all(a in (1, b) for a, b in zip(fi.shape, batch))
+    )
+    if not ok:
+        hint = ""
+        if fi.ndim == 1 and len(batch) >= 2 and fi.shape[0] == batch[0]:
+            hint = "; for one index per frame pass frame_index[:, None]"
         raise ValueError(
-            f"frame_index of shape {tuple(np.shape(frame_index))} does not match "
-            f"uv of shape {tuple(uv.shape)}"
-        ) from None
+            f"frame_index of shape {tuple(fi.shape)} does not match uv.shape[:-1] = "
+            f"{tuple(batch)}: give a scalar or one axis per batch axis, each of length 1 "
+            f"or the batch length{hint}"
+        )
+    fi = jnp.broadcast_to(jnp.asarray(fi), batch)
     camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
-    return _stripe_to_measurement(camera, plane, stage, uv, fi)
+    return _stripe_to_measurement(camera, plane, stage, uv, fi, _sensor(sensor_size, uv.dtype))
