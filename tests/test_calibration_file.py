@@ -89,11 +89,12 @@ def make_calibration(camera, *, stage=True, model="thick-lens", distortion="none
         init="nominal",
         joint=True,
         fits=fits,
-        freeze=("camera.dx", "camera.dy", "camera.f"),
+        freeze=("camera.dx", "camera.dy", "camera.f") if model == "thick-lens" else ("camera.x0",),
         reprojection_rms_px=0.031,
         plane_rms_mm=0.0012,
         gauge_rms_mm=0.0009 if stage else None,
         data=None,
+        sensor_size=(1600, 1200),
     )
 
 
@@ -163,10 +164,11 @@ def test_round_trip_reproduces_projection_and_reconstruction(tmp_path, name):
     assert d["reprojection_rms_px"] == 0.031
     assert d["laser_plane_rms_mm"] == 0.0012
     assert d["solves"]["camera"] == {"steps": 12, "converged": True, "time_s": 1.25, "cost": 0.5}
-    assert d["frozen"] == ["camera.dx", "camera.dy", "camera.f"]
+    assert d["frozen"] == list(cal.freeze)
     assert d["converged"] is True
     assert d["note"] == "test" and d["array"] == [0, 1, 2]
     assert loaded.raw["software"]["name"] == "scheimflux"
+    assert loaded.sensor_size == (1600, 1200)
 
 
 def test_file_layout_units_and_degrees(tmp_path):
@@ -236,7 +238,7 @@ INVALID = [
     ("format", "scheimflux.observations/1", r"format must be 'scheimflux.calibration/1'"),
     ("format", _DELETE, r"format must be .* got None"),
     ("model", _DELETE, r"missing key model"),
-    ("model", "fisheye", r"model must be one of \['thick-lens', 'pinhole'\], got 'fisheye'"),
+    ("model", "fisheye", r"model must be one of \['thick-lens', 'pinhole', 'opencv'\], got 'fi"),
     ("camera", _DELETE, r"missing key camera"),
     ("camera", [1, 2], r"camera must be a JSON object"),
     ("camera.z0", _DELETE, r"missing key camera.z0"),
@@ -245,11 +247,33 @@ INVALID = [
     ("camera.f.value", True, r"camera.f.value must be a finite number"),
     ("camera.f.unit", _DELETE, r"missing key camera.f.unit"),
     ("camera.phi.unit", "rad", r"camera.phi.unit must be 'deg', got 'rad'"),
-    ("camera.dx.value", -0.0044, r"camera.dx \(pixel pitch\) must be positive"),
+    ("camera.dx.value", -0.0044, r"camera.dx.value must be positive \(pixel pitch\)"),
+    # range checks (issue 11.4): each names the key
+    ("camera.z0.value", -249.0, r"camera.z0.value must be positive \(the sensor lies behind"),
+    ("camera.z0.value", 0.0, r"camera.z0.value must be positive"),
+    ("camera.f.value", -97.0, r"camera.f.value must be positive \(the focal length\)"),
+    ("camera.phi.value", 400.0, r"camera.phi.value must lie within ±90°, got 400.0°"),
+    ("camera.theta.value", -90.0, r"camera.theta.value must lie within ±90°"),
+    ("camera.f.value", math.nan, r"camera.f.value must be a finite number, got nan"),
+    ("camera.e.value", math.inf, r"camera.e.value must be a finite number, got inf"),
+    ("laser_plane.n_per_mm", [0.0, 0.0, 1.0 / 1.5e-4], r"n_per_mm is degenerate: .* 0.15 µm"),
+    ("sensor.width", 0, r"sensor.width must be a positive integer, got 0"),
+    ("sensor.height", 1200.5, r"sensor.height must be a positive integer"),
+    ("board_poses.rotvec", [[0.0, 0.0, 0.0]], r"board_poses.rotvec has 1 rows but .* 2"),
+    # unknown keys, with the closest valid name
+    ("camera.focal_lenght", 1.0, r"unknown key camera.focal_lenght; allowed here: f, e, z0"),
+    ("camera.z_0", {"value": 1.0, "unit": "mm"}, r"unknown key camera.z_0 \(did you mean 'z0'"),
+    ("laser_plane.normal", [0, 0, 1], r"unknown key laser_plane.normal \(did you mean 'unit_n"),
+    ("stage.delta_omega", 10.0, r"unknown key stage.delta_omega \(did you mean 'delta_omega_"),
+    ("camera.f.units", "mm", r"unknown key camera.f.units \(did you mean 'unit'"),
+    ("camera.distortion.k4", {"value": 0.0, "unit": "1"}, r"unknown key camera.distortion.k4"),
+    ("sensor.widht", 10, r"unknown key sensor.widht \(did you mean 'width'"),
+    ("diagnostic", {}, r"unknown key diagnostic \(did you mean 'diagnostics'"),
+    ("stage.delta_omega_deg", 0.0, r"stage.delta_omega_deg must be non-zero"),
     ("camera.distortion", _DELETE, r"missing key camera.distortion"),
-    ("camera.distortion.model", "fisheye", r"camera.distortion.model must be one of"),
+    ("camera.distortion.model", "fisheye", r"camera.distortion.model of the thick-lens model"),
     ("camera.distortion.k3", _DELETE, r"missing key camera.distortion.k3"),
-    ("laser_plane", _DELETE, r"missing key laser_plane"),
+    ("laser_plane", _DELETE, r"stage needs a laser_plane \(the file has none\)"),
     ("laser_plane.n_per_mm", [1.0, 2.0], r"laser_plane.n_per_mm must be a list of 3 numbers"),
     ("laser_plane.n_per_mm", [0.0, 0.0, 0.0], r"laser_plane.n_per_mm must not be zero"),
     ("laser_plane.n_per_mm", [0.0, None, 1.0], r"laser_plane.n_per_mm\[1\] must be a finite"),
@@ -286,7 +310,7 @@ def test_validation_messages(tmp_path, path, value, message):
 def test_pinhole_with_distortion_is_rejected():
     doc = calibration_to_dict(CASES["pinhole-stage"]())
     doc["camera"]["distortion"] = {"model": "division", "kappa": {"value": 0.1, "unit": "1"}}
-    with pytest.raises(ValueError, match="the pinhole model has no distortion"):
+    with pytest.raises(ValueError, match="distortion.model of the pinhole model must be one of"):
         parse_calibration(doc)
 
 
@@ -314,6 +338,6 @@ def test_unsupported_camera_is_refused(tmp_path):
     from scheimflux.camera import OpenCVDistortion
 
     cal = make_calibration(_thick_lens(OpenCVDistortion()))
-    with pytest.raises(ValueError, match="cannot store distortion OpenCVDistortion"):
+    with pytest.raises(ValueError, match="cannot store a thick-lens camera with opencv dist"):
         write_calibration(tmp_path / "c.json", cal)
     assert not (tmp_path / "c.json").exists()

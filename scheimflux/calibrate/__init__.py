@@ -31,6 +31,8 @@ from ._diagnostics import (
     residual_function as residual_function,
     residual_map as residual_map,
 )
+from ._init import with_nominal as with_nominal
+from ._loaded import LoadedCalibration as LoadedCalibration
 from ._model import (
     CalibrationData as CalibrationData,
     SystemParams as SystemParams,
@@ -41,6 +43,11 @@ from ._model import (
     joint_residuals as joint_residuals,
     make_data as make_data,
     stripe_residuals as stripe_residuals,
+)
+from ._opencv import (
+    OPENCV_FLAGS as OPENCV_FLAGS,
+    cv2_calibration_flags as cv2_calibration_flags,
+    opencv_frozen as opencv_frozen,
 )
 from ._solve import (
     Fit as Fit,
