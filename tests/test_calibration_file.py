@@ -273,7 +273,7 @@ INVALID = [
     ("camera.distortion", _DELETE, r"missing key camera.distortion"),
     ("camera.distortion.model", "fisheye", r"camera.distortion.model of the thick-lens model"),
     ("camera.distortion.k3", _DELETE, r"missing key camera.distortion.k3"),
-    ("laser_plane", _DELETE, r"stage needs a laser_plane \(the file has none\)"),
+    ("laser_plane", _DELETE, r"missing key laser_plane \(the stage needs"),
     ("laser_plane.n_per_mm", [1.0, 2.0], r"laser_plane.n_per_mm must be a list of 3 numbers"),
     ("laser_plane.n_per_mm", [0.0, 0.0, 0.0], r"laser_plane.n_per_mm must not be zero"),
     ("laser_plane.n_per_mm", [0.0, None, 1.0], r"laser_plane.n_per_mm\[1\] must be a finite"),

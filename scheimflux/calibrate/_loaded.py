@@ -59,7 +59,11 @@ class MissingObservations:
         )
 
     def __repr__(self) -> str:
-        return f"MissingObservations({self.source!r})"
+        # shown by type checkers that stop it before use: say what to do there too
+        return (
+            f"MissingObservations({self.source!r}: read without its observations; use "
+            "read_calibration(path, observations=OBS))"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,12 +99,10 @@ def _opt_float(v) -> float:
 
 def _restored_fit(fn, params, spec, data, solve: dict) -> Fit:
     x0, _, _ = split(params, spec)
-    if isinstance(data, CalibrationData):
-        r = eqx.filter_jit(fn)(params, data)
+    r = eqx.filter_jit(fn)(params, data) if isinstance(data, CalibrationData) else jnp.zeros(0)
+    cost = _opt_float(solve.get("cost"))
+    if not math.isfinite(cost) and r.size:
         cost = float(0.5 * jnp.sum(r**2))
-    else:
-        r = jnp.zeros(0)
-        cost = _opt_float(solve.get("cost"))
     return Fit(
         params=params,
         converged=bool(solve.get("converged", True)),

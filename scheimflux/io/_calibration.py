@@ -590,7 +590,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
     plane = _plane(doc)
     stage, ecc = _stage(doc)
     if stage is not None and plane is None:
-        raise CalibrationFileError("stage needs a laser_plane (the file has none)")
+        raise CalibrationFileError("missing key laser_plane (the stage needs the laser plane)")
     poses = _poses(doc)
     diagnostics = _diagnostics(doc)
     params = SystemParams(
