@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 
 from scheimflux.calibrate import SystemParams
-from scheimflux.camera import Division, Pinhole, RadialTangential, ThickLensScheimpflug
+from scheimflux.camera import (
+    Division,
+    OpenCVCamera,
+    Pinhole,
+    RadialTangential,
+    ThickLensScheimpflug,
+)
 from scheimflux.geometry import LaserPlane, Pose, RotaryStage
 from scheimflux.io._calibration import (
     FORMAT,
@@ -89,7 +95,10 @@ def make_calibration(camera, *, stage=True, model="thick-lens", distortion="none
         init="nominal",
         joint=True,
         fits=fits,
-        freeze=("camera.dx", "camera.dy", "camera.f") if model == "thick-lens" else ("camera.x0",),
+        freeze={
+            "thick-lens": ("camera.dx", "camera.dy", "camera.f"),
+            "opencv": ("camera.tau_x",),
+        }.get(model, ("camera.x0",)),
         reprojection_rms_px=0.031,
         plane_rms_mm=0.0012,
         gauge_rms_mm=0.0009 if stage else None,
@@ -111,6 +120,18 @@ CASES = {
     ),
     "pinhole-no-stage": lambda: make_calibration(
         Pinhole(39326.0, 36572.0, 256.63, -1818.3, 504.58), model="pinhole", stage=False
+    ),
+    # all 14 of OpenCV's coefficients non-zero (τx, τy ≈ 1.7°, −1.1°)
+    "opencv-stage": lambda: make_calibration(
+        OpenCVCamera.from_opencv(
+            np.array([[30000.0, 0.0, 805.3], [0.0, 30012.5, 597.1], [0.0, 0.0, 1.0]]),
+            np.array(
+                [-0.12, 0.35, 1.2e-3, -8e-4, -0.9, 0.05, -0.02, 0.3, 2e-3, -1e-3, 1.5e-3, -5e-4]
+                + [0.03, -0.02]
+            ),
+        ),
+        model="opencv",
+        distortion="opencv",
     ),
 }
 
@@ -149,6 +170,14 @@ def test_round_trip_reproduces_projection_and_reconstruction(tmp_path, name):
     if isinstance(cal.params.camera, ThickLensScheimpflug):
         assert float(loaded.camera.phi) == float(cal.params.camera.phi)
         assert float(loaded.camera.theta) == float(cal.params.camera.theta)
+    if isinstance(cal.params.camera, OpenCVCamera):
+        for a, b in zip(loaded.camera.to_opencv(), cal.params.camera.to_opencv()):
+            np.testing.assert_array_equal(a, b)  # τ through degrees bit for bit too
+    # the board poses come back exactly (they let diagnostics be rebuilt)
+    np.testing.assert_array_equal(loaded.params.board_poses.rotvec, cal.params.board_poses.rotvec)
+    np.testing.assert_array_equal(
+        loaded.params.board_poses.translation, cal.params.board_poses.translation
+    )
 
     if cal.params.stage is None:
         assert loaded.stage is None and loaded.eccentricity_mm is None
@@ -341,3 +370,51 @@ def test_unsupported_camera_is_refused(tmp_path):
     with pytest.raises(ValueError, match="cannot store a thick-lens camera with opencv dist"):
         write_calibration(tmp_path / "c.json", cal)
     assert not (tmp_path / "c.json").exists()
+
+
+def test_camera_only_file_has_no_plane():
+    cal = make_calibration(
+        OpenCVCamera(3000.0, 3000.0, 800.0, 600.0), stage=False, model="opencv", distortion="opencv"
+    )
+    cal = SimpleNamespace(
+        **{
+            **vars(cal),
+            "params": SystemParams(cal.params.camera, cal.params.board_poses),
+            "plane_rms_mm": None,
+        }
+    )
+    doc = calibration_to_dict(cal)
+    assert "laser_plane" not in doc
+    loaded = parse_calibration(doc)
+    assert loaded.plane is None and loaded.camera_only and loaded.stage is None
+    assert loaded.plane_rms_mm is None
+
+
+def test_loaded_is_a_calibration_and_says_what_it_needs():
+    import scheimflux as sf
+    from scheimflux.io import LoadedCalibration
+
+    loaded = parse_calibration(_good(), source="cal.json")
+    assert isinstance(loaded, LoadedCalibration) and isinstance(loaded, sf.Calibration)
+    assert loaded.init == "nominal" and loaded.joint and loaded.converged
+    assert loaded.freeze == ("camera.dx", "camera.dy", "camera.f")
+    assert set(loaded.fits) == {"camera", "stage", "joint"}
+    assert loaded.fits["joint"].steps == 5 and loaded.fits["joint"].cost == 0.5
+    with pytest.raises(ValueError, match="cal.json was read without its observations"):
+        loaded.data.corners
+    doc = _good()
+    doc["diagnostics"]["frozen"] = ["camera.alpha"]
+    with pytest.raises(ValueError, match="diagnostics.frozen: cannot freeze 'camera.alpha'"):
+        parse_calibration(doc)
+
+
+def test_unconverged_file_warns_when_read(tmp_path):
+    from scheimflux.io import UnconvergedCalibrationWarning
+
+    cal = make_calibration(_thick_lens())
+    cal = SimpleNamespace(**{**vars(cal), "fits": dict(cal.fits, joint=_fit(300, False))})
+    path = tmp_path / "cal.json"
+    write_calibration(path, cal)  # writing does not warn (filterwarnings = error)
+    with pytest.warns(UnconvergedCalibrationWarning, match=r"did NOT converge \(solves: joint\)"):
+        loaded = read_calibration(path)
+    assert not loaded.converged

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
+from numbers import Real
 
 import cv2
 import equinox as eqx
@@ -48,10 +50,10 @@ def _positive(name: str, v) -> float:
 def with_nominal(
     obs,
     *,
-    pixel_pitch_mm: float | tuple[float, float] | None = None,
-    focal_length_mm: float | None = None,
-    magnification: float | None = None,
-    tilt_deg: tuple[float, float] | None = None,
+    pixel_pitch_mm: Real | Sequence[Real] | None = None,
+    focal_length_mm: Real | None = None,
+    magnification: Real | None = None,
+    tilt_deg: Sequence[Real] | None = None,
 ):
     """The observations with nominal device values given here overriding the file's.
 
