@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 
 from scheimflux.calibrate import SystemParams
-from scheimflux.camera import Division, Pinhole, RadialTangential, ThickLensScheimpflug
+from scheimflux.camera import (
+    Division,
+    OpenCVCamera,
+    Pinhole,
+    RadialTangential,
+    ThickLensScheimpflug,
+)
 from scheimflux.geometry import LaserPlane, Pose, RotaryStage
 from scheimflux.io._calibration import (
     FORMAT,
@@ -89,11 +95,15 @@ def make_calibration(camera, *, stage=True, model="thick-lens", distortion="none
         init="nominal",
         joint=True,
         fits=fits,
-        freeze=("camera.dx", "camera.dy", "camera.f"),
+        freeze={
+            "thick-lens": ("camera.dx", "camera.dy", "camera.f"),
+            "opencv": ("camera.tau_x",),
+        }.get(model, ("camera.x0",)),
         reprojection_rms_px=0.031,
         plane_rms_mm=0.0012,
         gauge_rms_mm=0.0009 if stage else None,
         data=None,
+        sensor_size=(1600, 1200),
     )
 
 
@@ -110,6 +120,18 @@ CASES = {
     ),
     "pinhole-no-stage": lambda: make_calibration(
         Pinhole(39326.0, 36572.0, 256.63, -1818.3, 504.58), model="pinhole", stage=False
+    ),
+    # all 14 of OpenCV's coefficients non-zero (τx, τy ≈ 1.7°, −1.1°)
+    "opencv-stage": lambda: make_calibration(
+        OpenCVCamera.from_opencv(
+            np.array([[30000.0, 0.0, 805.3], [0.0, 30012.5, 597.1], [0.0, 0.0, 1.0]]),
+            np.array(
+                [-0.12, 0.35, 1.2e-3, -8e-4, -0.9, 0.05, -0.02, 0.3, 2e-3, -1e-3, 1.5e-3, -5e-4]
+                + [0.03, -0.02]
+            ),
+        ),
+        model="opencv",
+        distortion="opencv",
     ),
 }
 
@@ -148,6 +170,14 @@ def test_round_trip_reproduces_projection_and_reconstruction(tmp_path, name):
     if isinstance(cal.params.camera, ThickLensScheimpflug):
         assert float(loaded.camera.phi) == float(cal.params.camera.phi)
         assert float(loaded.camera.theta) == float(cal.params.camera.theta)
+    if isinstance(cal.params.camera, OpenCVCamera):
+        for a, b in zip(loaded.camera.to_opencv(), cal.params.camera.to_opencv()):
+            np.testing.assert_array_equal(a, b)  # τ through degrees bit for bit too
+    # the board poses come back exactly (they let diagnostics be rebuilt)
+    np.testing.assert_array_equal(loaded.params.board_poses.rotvec, cal.params.board_poses.rotvec)
+    np.testing.assert_array_equal(
+        loaded.params.board_poses.translation, cal.params.board_poses.translation
+    )
 
     if cal.params.stage is None:
         assert loaded.stage is None and loaded.eccentricity_mm is None
@@ -163,10 +193,11 @@ def test_round_trip_reproduces_projection_and_reconstruction(tmp_path, name):
     assert d["reprojection_rms_px"] == 0.031
     assert d["laser_plane_rms_mm"] == 0.0012
     assert d["solves"]["camera"] == {"steps": 12, "converged": True, "time_s": 1.25, "cost": 0.5}
-    assert d["frozen"] == ["camera.dx", "camera.dy", "camera.f"]
+    assert d["frozen"] == list(cal.freeze)
     assert d["converged"] is True
     assert d["note"] == "test" and d["array"] == [0, 1, 2]
     assert loaded.raw["software"]["name"] == "scheimflux"
+    assert loaded.sensor_size == (1600, 1200)
 
 
 def test_file_layout_units_and_degrees(tmp_path):
@@ -236,7 +267,7 @@ INVALID = [
     ("format", "scheimflux.observations/1", r"format must be 'scheimflux.calibration/1'"),
     ("format", _DELETE, r"format must be .* got None"),
     ("model", _DELETE, r"missing key model"),
-    ("model", "fisheye", r"model must be one of \['thick-lens', 'pinhole'\], got 'fisheye'"),
+    ("model", "fisheye", r"model must be one of \['thick-lens', 'pinhole', 'opencv'\], got 'fi"),
     ("camera", _DELETE, r"missing key camera"),
     ("camera", [1, 2], r"camera must be a JSON object"),
     ("camera.z0", _DELETE, r"missing key camera.z0"),
@@ -245,11 +276,33 @@ INVALID = [
     ("camera.f.value", True, r"camera.f.value must be a finite number"),
     ("camera.f.unit", _DELETE, r"missing key camera.f.unit"),
     ("camera.phi.unit", "rad", r"camera.phi.unit must be 'deg', got 'rad'"),
-    ("camera.dx.value", -0.0044, r"camera.dx \(pixel pitch\) must be positive"),
+    ("camera.dx.value", -0.0044, r"camera.dx.value must be positive \(pixel pitch\)"),
+    # range checks (issue 11.4): each names the key
+    ("camera.z0.value", -249.0, r"camera.z0.value must be positive \(the sensor lies behind"),
+    ("camera.z0.value", 0.0, r"camera.z0.value must be positive"),
+    ("camera.f.value", -97.0, r"camera.f.value must be positive \(the focal length\)"),
+    ("camera.phi.value", 400.0, r"camera.phi.value must lie within ±90°, got 400.0°"),
+    ("camera.theta.value", -90.0, r"camera.theta.value must lie within ±90°"),
+    ("camera.f.value", math.nan, r"camera.f.value must be a finite number, got nan"),
+    ("camera.e.value", math.inf, r"camera.e.value must be a finite number, got inf"),
+    ("laser_plane.n_per_mm", [0.0, 0.0, 1.0 / 1.5e-4], r"n_per_mm is degenerate: .* 0.15 µm"),
+    ("sensor.width", 0, r"sensor.width must be a positive integer, got 0"),
+    ("sensor.height", 1200.5, r"sensor.height must be a positive integer"),
+    ("board_poses.rotvec", [[0.0, 0.0, 0.0]], r"board_poses.rotvec has 1 rows but .* 2"),
+    # unknown keys, with the closest valid name
+    ("camera.focal_lenght", 1.0, r"unknown key camera.focal_lenght; allowed here: f, e, z0"),
+    ("camera.z_0", {"value": 1.0, "unit": "mm"}, r"unknown key camera.z_0 \(did you mean 'z0'"),
+    ("laser_plane.normal", [0, 0, 1], r"unknown key laser_plane.normal \(did you mean 'unit_n"),
+    ("stage.delta_omega", 10.0, r"unknown key stage.delta_omega \(did you mean 'delta_omega_"),
+    ("camera.f.units", "mm", r"unknown key camera.f.units \(did you mean 'unit'"),
+    ("camera.distortion.k4", {"value": 0.0, "unit": "1"}, r"unknown key camera.distortion.k4"),
+    ("sensor.widht", 10, r"unknown key sensor.widht \(did you mean 'width'"),
+    ("diagnostic", {}, r"unknown key diagnostic \(did you mean 'diagnostics'"),
+    ("stage.delta_omega_deg", 0.0, r"stage.delta_omega_deg must be non-zero"),
     ("camera.distortion", _DELETE, r"missing key camera.distortion"),
-    ("camera.distortion.model", "fisheye", r"camera.distortion.model must be one of"),
+    ("camera.distortion.model", "fisheye", r"camera.distortion.model of the thick-lens model"),
     ("camera.distortion.k3", _DELETE, r"missing key camera.distortion.k3"),
-    ("laser_plane", _DELETE, r"missing key laser_plane"),
+    ("laser_plane", _DELETE, r"missing key laser_plane \(the stage needs"),
     ("laser_plane.n_per_mm", [1.0, 2.0], r"laser_plane.n_per_mm must be a list of 3 numbers"),
     ("laser_plane.n_per_mm", [0.0, 0.0, 0.0], r"laser_plane.n_per_mm must not be zero"),
     ("laser_plane.n_per_mm", [0.0, None, 1.0], r"laser_plane.n_per_mm\[1\] must be a finite"),
@@ -286,7 +339,7 @@ def test_validation_messages(tmp_path, path, value, message):
 def test_pinhole_with_distortion_is_rejected():
     doc = calibration_to_dict(CASES["pinhole-stage"]())
     doc["camera"]["distortion"] = {"model": "division", "kappa": {"value": 0.1, "unit": "1"}}
-    with pytest.raises(ValueError, match="the pinhole model has no distortion"):
+    with pytest.raises(ValueError, match="distortion.model of the pinhole model must be one of"):
         parse_calibration(doc)
 
 
@@ -314,6 +367,54 @@ def test_unsupported_camera_is_refused(tmp_path):
     from scheimflux.camera import OpenCVDistortion
 
     cal = make_calibration(_thick_lens(OpenCVDistortion()))
-    with pytest.raises(ValueError, match="cannot store distortion OpenCVDistortion"):
+    with pytest.raises(ValueError, match="cannot store a thick-lens camera with opencv dist"):
         write_calibration(tmp_path / "c.json", cal)
     assert not (tmp_path / "c.json").exists()
+
+
+def test_camera_only_file_has_no_plane():
+    cal = make_calibration(
+        OpenCVCamera(3000.0, 3000.0, 800.0, 600.0), stage=False, model="opencv", distortion="opencv"
+    )
+    cal = SimpleNamespace(
+        **{
+            **vars(cal),
+            "params": SystemParams(cal.params.camera, cal.params.board_poses),
+            "plane_rms_mm": None,
+        }
+    )
+    doc = calibration_to_dict(cal)
+    assert "laser_plane" not in doc
+    loaded = parse_calibration(doc)
+    assert loaded.plane is None and loaded.camera_only and loaded.stage is None
+    assert loaded.plane_rms_mm is None
+
+
+def test_loaded_is_a_calibration_and_says_what_it_needs():
+    import scheimflux as sf
+    from scheimflux.io import LoadedCalibration
+
+    loaded = parse_calibration(_good(), source="cal.json")
+    assert isinstance(loaded, LoadedCalibration) and isinstance(loaded, sf.Calibration)
+    assert loaded.init == "nominal" and loaded.joint and loaded.converged
+    assert loaded.freeze == ("camera.dx", "camera.dy", "camera.f")
+    assert set(loaded.fits) == {"camera", "stage", "joint"}
+    assert loaded.fits["joint"].steps == 5 and loaded.fits["joint"].cost == 0.5
+    with pytest.raises(ValueError, match="cal.json was read without its observations"):
+        loaded.data.corners
+    doc = _good()
+    doc["diagnostics"]["frozen"] = ["camera.alpha"]
+    with pytest.raises(ValueError, match="diagnostics.frozen: cannot freeze 'camera.alpha'"):
+        parse_calibration(doc)
+
+
+def test_unconverged_file_warns_when_read(tmp_path):
+    from scheimflux.io import UnconvergedCalibrationWarning
+
+    cal = make_calibration(_thick_lens())
+    cal = SimpleNamespace(**{**vars(cal), "fits": dict(cal.fits, joint=_fit(300, False))})
+    path = tmp_path / "cal.json"
+    write_calibration(path, cal)  # writing does not warn (filterwarnings = error)
+    with pytest.warns(UnconvergedCalibrationWarning, match=r"did NOT converge \(solves: joint\)"):
+        loaded = read_calibration(path)
+    assert not loaded.converged

@@ -37,6 +37,8 @@ from ._gates import (
     QualityError as QualityError,
     screen_observations as screen_observations,
 )
+from ._init import with_nominal as with_nominal
+from ._loaded import LoadedCalibration as LoadedCalibration
 from ._model import (
     CalibrationData as CalibrationData,
     SystemParams as SystemParams,
@@ -47,6 +49,11 @@ from ._model import (
     joint_residuals as joint_residuals,
     make_data as make_data,
     stripe_residuals as stripe_residuals,
+)
+from ._opencv import (
+    OPENCV_FLAGS as OPENCV_FLAGS,
+    cv2_calibration_flags as cv2_calibration_flags,
+    opencv_frozen as opencv_frozen,
 )
 from ._solve import (
     Fit as Fit,

@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..camera._distortion import Division, NoDistortion, RadialTangential
+from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
+from ..camera._opencv import OpenCVCamera
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._plane import LaserPlane
@@ -36,6 +37,7 @@ from ._init import (
     closed_form_pinhole,
     nominal_thick_lens,
     poses_for_central_camera,
+    require_pixel_pitch,
     thick_lens_from_pinhole,
 )
 from ._model import (
@@ -50,10 +52,11 @@ from ._model import (
     make_data,
     stripe_residuals,
 )
+from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
 from ._solve import Fit, least_squares
 
-MODELS = ("thick-lens", "pinhole")
-DISTORTIONS = ("none", "radial-tangential", "division")
+MODELS = ("thick-lens", "pinhole", "opencv")
+DISTORTIONS = ("none", "radial-tangential", "division", "opencv")
 
 
 def make_distortion(name: str):
@@ -64,6 +67,8 @@ def make_distortion(name: str):
         return RadialTangential()
     if name == "division":
         return Division()
+    if name == "opencv":
+        return OpenCVDistortion()
     raise ValueError(f"distortion must be one of {DISTORTIONS}, got {name!r}")
 
 
@@ -91,6 +96,8 @@ DEFAULT_FREEZE = {
         "camera.y0",
     ),
     ("pinhole", "closed-form"): (),
+    # OpenCV's model: the coefficients its flags leave out are added (`opencv_frozen`)
+    ("opencv", "closed-form"): (),
 }
 
 
@@ -113,11 +120,12 @@ def _check_observations(obs: Observations, *, min_views: int = 3, min_corners: i
 class CameraCalibration:
     """Camera and board poses from the checkerboard corners."""
 
-    camera: ThickLensScheimpflug | Pinhole
+    camera: ThickLensScheimpflug | Pinhole | OpenCVCamera
     poses: Pose
     fit: Fit
     reprojection_rms_px: float
     init: str
+    freeze: tuple = ()  # the parameter paths held fixed
 
 
 def _initial(obs, model, init):
@@ -125,6 +133,9 @@ def _initial(obs, model, init):
         raise ValueError(f"init must be 'auto', 'nominal' or 'closed-form', got {init!r}")
     if model == "pinhole":
         return (*closed_form_pinhole(obs), "closed-form")
+    if model == "opencv":
+        pin, poses = closed_form_pinhole(obs)
+        return opencv_from_pinhole(pin), poses, "closed-form"
     nom = obs.nominal
     has_nominal = nom is not None and nom.focal_length_mm and nom.magnification
     if init == "nominal" or (init == "auto" and has_nominal and nom.tilt_deg is not None):
@@ -138,10 +149,27 @@ def _initial(obs, model, init):
 
 def _default_distortion(model: str, distortion: str | None) -> str:
     """The most accurate default: radial-tangential for the thick lens; the pinhole
-    (paper eq. 14) has none."""
+    (paper eq. 14) has none; OpenCV's model has its own (set by its flags)."""
+    if model == "opencv":
+        if distortion not in (None, "opencv"):
+            raise ValueError(
+                "the OpenCV model has OpenCV's distortion (choose its terms with "
+                f"opencv_flags), not distortion={distortion!r}"
+            )
+        return "opencv"
+    if distortion == "opencv":
+        raise ValueError("distortion='opencv' belongs to model='opencv'")
     if distortion is not None:
         return distortion
     return "radial-tangential" if model == "thick-lens" else "none"
+
+
+def _model_freeze(model: str, how: str, freeze, opencv_flags) -> tuple[str, ...]:
+    """The frozen set: the user's (or the default), plus the OpenCV terms not in the model."""
+    base = DEFAULT_FREEZE[(model, how)] if freeze is None else tuple(freeze)
+    if model != "opencv":
+        return tuple(base)
+    return tuple(dict.fromkeys(tuple(base) + opencv_frozen(opencv_flags)))
 
 
 def calibrate_camera(
@@ -155,6 +183,7 @@ def calibrate_camera(
     robust: float | None = None,
     max_steps: int = 200,
     throw: bool = True,
+    opencv_flags: Sequence[str] | str | None = None,
 ) -> CameraCalibration:
     """Calibrate the camera from checkerboard corners (Levenberg–Marquardt).
 
@@ -168,10 +197,23 @@ def calibrate_camera(
     - `freeze`: parameter paths held fixed (default `DEFAULT_FREEZE[model]`).
     - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners.
     - `throw`: raise `NotConvergedError` if LM does not converge.
+    - `opencv_flags`: for `model="opencv"` (OpenCV's camera, equal to
+      `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
+      `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`
+      (see `scheimflux.calibrate._opencv`); a list or `"rational,tilted"`.
+
+    The thick-lens model needs the pixel pitch (`obs.pixel_pitch_mm`, from the sensor's
+    datasheet): without it a `ValueError` says so (`with_nominal(obs, pixel_pitch_mm=...)`
+    or `calibrate --pixel-pitch-mm` provide it).
     """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if model != "opencv" and opencv_flags:
+        raise ValueError(f"opencv_flags apply to model='opencv', not {model!r}")
+    opencv_flags = parse_opencv_flags(opencv_flags)
     _check_observations(obs)
+    if model == "thick-lens":
+        require_pixel_pitch(obs)
     distortion = _default_distortion(model, distortion)
     dist = make_distortion(distortion)
     if model == "pinhole" and distortion != "none":
@@ -180,13 +222,25 @@ def calibrate_camera(
             "distortion='none' or the thick-lens model"
         )
     camera, poses, how = _initial(obs, model, init)
+    freeze = _model_freeze(model, how, freeze, opencv_flags)
+    if model == "opencv":
+        # the ideal pinhole first (every coefficient at zero), then the model's terms
+        first = least_squares(
+            camera_residuals,
+            SystemParams(camera, poses),
+            make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
+            freeze=tuple(dict.fromkeys(freeze + OPENCV_COEFFICIENTS)),
+            max_steps=max_steps,
+            throw=False,
+        )
+        camera, poses = first.params.camera, first.params.board_poses
     if model == "thick-lens" and distortion != "none":
         # the ideal camera first, then with distortion from zero
         first = least_squares(
             camera_residuals,
             SystemParams(camera, poses),
             make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
-            freeze=DEFAULT_FREEZE[(model, how)] if freeze is None else freeze,
+            freeze=freeze,
             max_steps=max_steps,
             throw=False,
         )
@@ -194,12 +248,13 @@ def calibrate_camera(
         camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     params = SystemParams(camera, poses)
-    freeze = DEFAULT_FREEZE[(model, how)] if freeze is None else tuple(freeze)
     fit = least_squares(
         camera_residuals, params, data, freeze=freeze, max_steps=max_steps, throw=throw
     )
     rms = _rms_px(fit.params, data)
-    return CameraCalibration(fit.params.camera, fit.params.board_poses, fit, rms, how)
+    return CameraCalibration(
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)
+    )
 
 
 # Compiled residual evaluations for the summaries (eager evaluation would dispatch every
@@ -751,11 +806,18 @@ class Calibration:
 
     **Fields:**
     - `params`: `SystemParams` (camera, board poses, laser plane, stage, eccentricity).
-    - `model`: `"thick-lens"` or `"pinhole"`; `init`: how the camera was initialised.
+    - `model`: `"thick-lens"`, `"pinhole"` or `"opencv"`; `init`: how the camera was
+      initialised.
     - `fits`: the LM solves by stage (`"camera"`, `"stage"`, `"joint"`).
     - `freeze`: the parameter paths held fixed.
-    - `reprojection_rms_px`, `plane_rms_mm`, `gauge_rms_mm` (None without a stage scan).
+    - `reprojection_rms_px`, `plane_rms_mm` (None for a camera-only calibration),
+      `gauge_rms_mm` (None without a stage scan).
     - `data`: the arrays the residuals were computed from.
+    - `sensor_size`: `(width, height)` in px.
+
+    A camera-only calibration (no stripe pixels on the boards) has `plane = None`
+    (`camera_only` is True): it serves OpenCV export and camera studies, not
+    reconstruction.
     """
 
     params: SystemParams
@@ -766,18 +828,23 @@ class Calibration:
     fits: dict
     freeze: tuple
     reprojection_rms_px: float
-    plane_rms_mm: float
+    plane_rms_mm: float | None
     gauge_rms_mm: float | None
     data: CalibrationData
     sensor_size: tuple[int, int] = (0, 0)  # (width, height) px
     quality: Quality | None = None  # gates, rejected observations, warnings
 
     @property
+    def camera_only(self) -> bool:
+        """True when there is no laser plane (no stripe pixels on the boards)."""
+        return self.params.plane is None
+
+    @property
     def camera(self):
         return self.params.camera
 
     @property
-    def plane(self) -> LaserPlane:
+    def plane(self) -> LaserPlane | None:
         return self.params.plane
 
     @property
@@ -811,6 +878,7 @@ def calibrate(
     reject: float | None = REJECT_SIGMA,
     max_steps: int = 300,
     throw: bool = True,
+    opencv_flags: Sequence[str] | str | None = None,
 ) -> Calibration:
     """Calibrate camera, laser plane and (if scanned) the rotary stage.
 
@@ -820,6 +888,11 @@ def calibrate(
     parameter pytree together, each residual weighted by its noise: corners by
     `sigma_corner_px`, stripe and gauge points by `sigma_stripe_px` converted to mm at
     the camera's pixel footprint.
+
+    `model="opencv"` calibrates OpenCV's camera (`cv2.projectPoints`; its terms chosen by
+    `opencv_flags`, see [`calibrate_camera`][]) in the same way, jointly with the plane
+    and the stage. Observations without any stripe pixel on the boards (and no stage
+    scan) give a camera-only calibration (`plane = None`, only the camera solve).
 
     Observations are screened (pixels outside the sensor are left out); after the joint
     solve a rejection pass leaves out what lies beyond `reject` robust σ and solves once
@@ -836,6 +909,12 @@ def calibrate(
     obs, outside = screen_observations(obs)
     stage_freeze = _stage_freeze(freeze, obs)
     distortion = _default_distortion(model, distortion)
+    camera_only = not _has_board_stripes(obs)
+    if camera_only and obs.stage is not None:
+        raise ValueError(
+            "the observations hold a rotary-stage scan but no stripe pixels on any board "
+            "view: the stage needs the laser plane, which needs the laser line on the boards"
+        )
     cam_cal = calibrate_camera(
         obs,
         model=model,
@@ -846,7 +925,14 @@ def calibrate(
         robust=robust,
         max_steps=max_steps,
         throw=throw,
+        opencv_flags=opencv_flags,
     )
+    if camera_only:
+        cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust)
+        rejected = {"threshold_sigma": reject}
+        if reject is not None:
+            rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
+        return _gated(cal, {**outside, **rejected}, None, throw)
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
@@ -866,7 +952,7 @@ def calibrate(
         fits["stage"] = st.fit
     params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, sigma_stripe_mm=sigma_mm, robust=robust)
-    freeze = tuple(DEFAULT_FREEZE[(model, cam_cal.init)] if freeze is None else freeze)
+    freeze = cam_cal.freeze
     start = params
     if joint:
         fn = joint_residuals if stage is not None else camera_plane_residuals
@@ -916,7 +1002,12 @@ def calibrate(
         data=data,
         sensor_size=(int(obs.width), int(obs.height)),
     )
-    quality = assess_quality(cal, {**outside, **outliers}, plane_fit.conditioning)
+    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw)
+
+
+def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:
+    """`cal` with its quality gates assessed; `QualityError` (with `throw`) if one fails."""
+    quality = assess_quality(cal, rejected, conditioning)
     cal = dataclasses.replace(cal, quality=quality)
     if throw and not quality.passed:
         raise QualityError(
@@ -1061,6 +1152,35 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
     if not cal.joint and rejected.get("threshold_sigma") is not None:
         warnings.append("outliers are counted but not left out without the joint solve")
     return Quality(tuple(gates), dict(rejected), tuple(warnings), plane_info)
+
+
+def _has_board_stripes(obs: Observations) -> bool:
+    """Whether any board view holds a finite stripe pixel."""
+    for view in obs.views:
+        px = np.asarray(view.stripe_px, dtype=np.float64).reshape(-1, 2)
+        if np.any(np.all(np.isfinite(px), axis=1)):
+            return True
+    return False
+
+
+def _camera_only(cam_cal: CameraCalibration, obs, model, distortion, sigma_corner_px, robust):
+    """The `Calibration` of the camera solve alone (no laser plane, no stage)."""
+    data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
+    params = SystemParams(cam_cal.camera, cam_cal.poses)
+    return Calibration(
+        params=params,
+        model=model,
+        distortion=distortion,
+        init=cam_cal.init,
+        joint=False,
+        fits={"camera": cam_cal.fit},
+        freeze=cam_cal.freeze,
+        reprojection_rms_px=_rms_px(params, data),
+        plane_rms_mm=None,
+        gauge_rms_mm=None,
+        data=data,
+        sensor_size=(int(obs.width), int(obs.height)),
+    )
 
 
 @eqx.filter_jit

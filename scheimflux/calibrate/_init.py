@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
+from numbers import Real
 
 import cv2
 import equinox as eqx
@@ -13,8 +16,79 @@ import numpy as np
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose, rotation_matrix
+from ..io._observations import Nominal
 from ._solve import least_squares
 from ._zhang import board_homographies, pose_from_homography, zhang_intrinsics
+
+
+def require_pixel_pitch(obs) -> tuple[float, float]:
+    """The observations' pixel pitch `(dx, dy)` in mm; a clear error when it is absent.
+
+    The thick-lens model's image-side lengths (f, e, z0) are in mm: without the sensor's
+    pixel pitch they are undetermined, and no default is assumed.
+    """
+    pitch = getattr(obs, "pixel_pitch_mm", None)
+    if pitch is None:
+        raise ValueError(
+            "the thick-lens model needs the sensor's pixel pitch: give --pixel-pitch-mm "
+            "(calibrate or detect; library: with_nominal(obs, pixel_pitch_mm=...)), "
+            "or use --model opencv or pinhole"
+        )
+    dx, dy = (float(p) for p in pitch)
+    if not (math.isfinite(dx) and math.isfinite(dy) and dx > 0 and dy > 0):
+        raise ValueError(f"the pixel pitch must be positive and finite, got {tuple(pitch)} mm")
+    return dx, dy
+
+
+def _positive(name: str, v) -> float:
+    v = float(v)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be positive and finite, got {v}")
+    return v
+
+
+def with_nominal(
+    obs,
+    *,
+    pixel_pitch_mm: Real | Sequence[Real] | None = None,
+    focal_length_mm: Real | None = None,
+    magnification: Real | None = None,
+    tilt_deg: Sequence[Real] | None = None,
+):
+    """The observations with nominal device values given here overriding the file's.
+
+    **Arguments:**
+    - `obs`: `Observations`.
+    - `pixel_pitch_mm`: one number (square pixels) or `(dx, dy)`, mm.
+    - `focal_length_mm`, `magnification` (|β| > 0), `tilt_deg` `(φ, θ)`: the nominal
+      values the thick-lens initialisation reads (`obs.nominal`).
+
+    Values left at None keep the file's. **Returns:** a new `Observations`.
+    """
+    changes = {}
+    if pixel_pitch_mm is not None:
+        p = np.atleast_1d(np.asarray(pixel_pitch_mm, dtype=np.float64))
+        if p.shape not in ((1,), (2,)):
+            raise ValueError(f"pixel_pitch_mm must be one number or (dx, dy), got {pixel_pitch_mm}")
+        p = np.broadcast_to(p, (2,))
+        changes["pixel_pitch_mm"] = (
+            _positive("pixel_pitch_mm", p[0]),
+            _positive("pixel_pitch_mm", p[1]),
+        )
+    nom = obs.nominal if obs.nominal is not None else Nominal()
+    new = {}
+    if focal_length_mm is not None:
+        new["focal_length_mm"] = _positive("focal_length_mm", focal_length_mm)
+    if magnification is not None:
+        new["magnification"] = _positive("magnification", magnification)
+    if tilt_deg is not None:
+        t = tuple(float(a) for a in tilt_deg)
+        if len(t) != 2 or not all(math.isfinite(a) and abs(a) < 90 for a in t):
+            raise ValueError(f"tilt_deg must be (phi, theta) within ±90°, got {tilt_deg}")
+        new["tilt_deg"] = t
+    if new:
+        changes["nominal"] = dataclasses.replace(nom, **new)
+    return dataclasses.replace(obs, **changes) if changes else obs
 
 
 def _stack_poses(Rs, ts) -> Pose:
@@ -59,7 +133,7 @@ def nominal_thick_lens(obs) -> ThickLensScheimpflug:
         )
     f, m = nom.focal_length_mm, nom.magnification
     phi, theta = (math.radians(a) for a in (nom.tilt_deg or (0.0, 0.0)))
-    dx, dy = obs.pixel_pitch_mm
+    dx, dy = require_pixel_pitch(obs)
     return ThickLensScheimpflug(
         f=f,
         e=0.0,
@@ -139,7 +213,7 @@ def thick_lens_from_pinhole(pinhole: Pinhole, poses: Pose, obs, *, f=None):
     and e follow from matching the pixel rays up to a rotation of the frame.
     Returns the camera and the board poses in its frame.
     """
-    dx, dy = obs.pixel_pitch_mm
+    dx, dy = require_pixel_pitch(obs)
     z_board = float(np.median(np.asarray(poses.translation)[:, 2]))
     img_dist = float(pinhole.alpha) * dx  # perpendicular distance centre–sensor (mm)
     if f is None:

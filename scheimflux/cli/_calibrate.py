@@ -14,6 +14,16 @@ stated stripe sigma, the axis point off the sensor, heavy-tailed residuals, more
 10 % outliers) is an error and writes nothing unless --force is given. The summary and
 CAL.json hold the sigma of every free parameter, the warnings, the frozen set, the solve
 statistics, the gates and the counts of left-out observations.
+
+--model opencv calibrates OpenCV's camera (equal to cv2.projectPoints: fx, fy, cx, cy,
+k1 k2 p1 p2 k3; --opencv-flags rational adds k4-k6, thin-prism s1-s4, tilted the sensor
+tilt tau_x tau_y; zero-tangent holds p1 = p2 = 0, fix-k3 holds k3 = 0), jointly with the
+laser plane and the stage as for the thick lens. Observations without stripe pixels on
+the boards give a camera-only calibration (no laser plane: for export, not reconstruct).
+
+The thick-lens model needs the sensor's pixel pitch (--pixel-pitch-mm, or the
+observations file's). Nominal values given here (--pixel-pitch-mm, --focal-length-mm,
+--magnification, --tilt-deg) override the observations file's.
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ import time
 
 from ._common import CLIError, require_positive
 
-_MODELS = ("thick-lens", "pinhole")
+_MODELS = ("thick-lens", "pinhole", "opencv")
 _DISTORTIONS = ("radial-tangential", "division", "none")
 _INITS = ("auto", "nominal", "closed-form")
 
@@ -40,6 +50,15 @@ def register(subparsers) -> None:
     p.add_argument(
         "--model", choices=_MODELS, default="thick-lens", help="camera model (default: %(default)s)"
     )
+    p.add_argument(
+        "--opencv-flags",
+        default=None,
+        metavar="FLAGS",
+        help="--model opencv: comma-separated terms beyond k1 k2 p1 p2 k3: rational (k4-k6), "
+        "thin-prism (s1-s4), tilted (tau_x, tau_y), zero-tangent (p1 = p2 = 0), fix-k3 "
+        "(k3 = 0); e.g. rational,tilted (cv2.CALIB_RATIONAL_MODEL | CALIB_TILTED_MODEL)",
+    )
+    add_nominal_arguments(p)
     p.add_argument(
         "--distortion",
         choices=_DISTORTIONS,
@@ -117,9 +136,61 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def add_nominal_arguments(p) -> None:
+    """Nominal device values that override the observations file's."""
+    g = p.add_argument_group("nominal values (override the observations file's)")
+    g.add_argument(
+        "--pixel-pitch-mm",
+        type=float,
+        nargs="+",
+        metavar="MM",
+        default=None,
+        help="sensor pixel pitch: DX [DY] in mm (the thick-lens model needs it)",
+    )
+    g.add_argument("--focal-length-mm", type=float, default=None, help="nominal focal length")
+    g.add_argument(
+        "--magnification", type=float, default=None, help="nominal lateral magnification |beta|"
+    )
+    g.add_argument(
+        "--tilt-deg",
+        type=float,
+        nargs=2,
+        metavar=("PHI", "THETA"),
+        default=None,
+        help="nominal sensor tilt (phi, theta) in degrees",
+    )
+
+
+def _check_nominal(args) -> None:
+    pitch = args.pixel_pitch_mm
+    if pitch is not None and (len(pitch) > 2 or not all(p > 0 and p < 1e300 for p in pitch)):
+        raise CLIError(f"--pixel-pitch-mm must be one or two positive numbers (mm), got {pitch}")
+    require_positive(args, "focal_length_mm", "magnification")
+    if args.tilt_deg is not None and not all(abs(a) < 90 for a in args.tilt_deg):
+        raise CLIError(f"--tilt-deg angles must lie within ±90°, got {args.tilt_deg}")
+
+
+def _check_opencv(args) -> None:
+    from ..calibrate._opencv import parse_opencv_flags
+
+    if args.opencv_flags is not None and args.model != "opencv":
+        raise CLIError("--opencv-flags applies to --model opencv")
+    if args.model == "opencv" and args.distortion is not None:
+        raise CLIError(
+            "--model opencv has OpenCV's distortion: choose its terms with --opencv-flags, "
+            "not --distortion"
+        )
+    try:
+        args.opencv_flags = parse_opencv_flags(args.opencv_flags)
+    except ValueError as err:
+        raise CLIError(f"--opencv-flags: {err}") from None
+
+
 def _check(args) -> None:
     require_positive(args, "sigma_corner_px", "sigma_stripe_px")
     require_positive(args, "robust", "reject", zero_ok=True)
+    _check_nominal(args)
+    _check_opencv(args)
     if args.max_steps < 1:
         raise CLIError(f"--max-steps must be at least 1, got {args.max_steps}")
     if args.model == "pinhole" and args.distortion not in (None, "none"):
@@ -162,12 +233,15 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
     for name, entry in dist.items():
         if name != "model":
             lines.append(fmt(f"camera.distortion.{name}", name, entry))
-    pl = doc["laser_plane"]
-    n = ", ".join(f"{x:.6f}" for x in pl["unit_normal"])
-    lines.append(
-        f"laser plane: unit normal ({n}), distance {pl['distance_mm']:.4f} mm "
-        f"(n = [{', '.join(f'{x:.6e}' for x in pl['n_per_mm'])}] 1/mm)"
-    )
+    pl = doc.get("laser_plane")
+    if pl is None:
+        lines.append("laser plane: none (camera-only calibration)")
+    else:
+        n = ", ".join(f"{x:.6f}" for x in pl["unit_normal"])
+        lines.append(
+            f"laser plane: unit normal ({n}), distance {pl['distance_mm']:.4f} mm "
+            f"(n = [{', '.join(f'{x:.6e}' for x in pl['n_per_mm'])}] 1/mm)"
+        )
     st = doc.get("stage")
     if st is not None:
         lines.append("stage (camera -> measurement):")
@@ -195,6 +269,22 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
 # ----------------------------------------------------------------------------- run
 
 
+def _with_nominal(args, obs):
+    """The observations with the command line's nominal values in place of the file's."""
+    from ..calibrate._init import with_nominal
+
+    try:
+        return with_nominal(
+            obs,
+            pixel_pitch_mm=args.pixel_pitch_mm,
+            focal_length_mm=args.focal_length_mm,
+            magnification=args.magnification,
+            tilt_deg=args.tilt_deg,
+        )
+    except ValueError as err:
+        raise CLIError(str(err)) from None
+
+
 def run(args) -> int:
     _check(args)
     from ..calibrate._calibrate import calibrate
@@ -204,10 +294,17 @@ def run(args) -> int:
     from ..io._observations import read_observations
 
     out = check_writable(args.out, overwrite=args.overwrite)  # before the long part
-    obs = read_observations(args.observations)
+    obs = _with_nominal(args, read_observations(args.observations))
     distortion = args.distortion
     if distortion is None:
-        distortion = "radial-tangential" if args.model == "thick-lens" else "none"
+        distortion = {"thick-lens": "radial-tangential", "opencv": "opencv"}.get(args.model, "none")
+    if args.model == "thick-lens":
+        from ..calibrate._init import require_pixel_pitch
+
+        try:
+            require_pixel_pitch(obs)
+        except ValueError as err:
+            raise CLIError(f"{args.observations}: {err}") from None
     print(
         f"calibrating {args.observations}: {len(obs.views)} views"
         + (f", {len(obs.stage.frames)} stage frames" if obs.stage is not None else "")
@@ -229,6 +326,7 @@ def run(args) -> int:
             reject=args.reject or None,
             max_steps=args.max_steps,
             throw=False,
+            **({"opencv_flags": args.opencv_flags} if args.model == "opencv" else {}),
         )
     except NotConvergedError as err:  # throw=False should prevent it; be safe
         raise CLIError(f"calibration did not converge: {err}; no file written") from None
@@ -248,6 +346,11 @@ def run(args) -> int:
     parse_calibration(doc)
     print(format_summary(doc))
     print(format_trust(cal))
+    if cal.params.plane is None:
+        print(
+            "note: no stripe pixels on the board views: camera-only calibration (no laser "
+            "plane; good for export --opencv, not for reconstruct)"
+        )
     print(f"total time: {total:.1f} s")
     failed = [
         f"{name} ({fit.message or 'not converged'} after {fit.steps} steps)"

@@ -105,6 +105,11 @@ def run(args) -> int:
     points_extension(args.out)
     out = check_output(args.out, overwrite=args.overwrite)
     loaded = read_calibration(args.calibration)
+    if loaded.plane is None:
+        raise CLIError(
+            f"{args.calibration} is a camera-only calibration (no laser_plane): reconstruct "
+            "needs a laser plane (calibrate with the laser line on the board views)"
+        )
     if args.frame == "measurement" and loaded.stage is None:
         raise CLIError(
             f"--frame measurement needs a calibrated rotary stage; {args.calibration} has "

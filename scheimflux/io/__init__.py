@@ -2,7 +2,7 @@
 
 from ._calibration import (
     CalibrationFileError as CalibrationFileError,
-    LoadedCalibration as LoadedCalibration,
+    UnconvergedCalibrationWarning as UnconvergedCalibrationWarning,
     calibration_to_dict as calibration_to_dict,
     parse_calibration as parse_calibration,
     read_calibration as read_calibration,
@@ -24,3 +24,13 @@ from ._opencv_yaml import (
 )
 from ._pointcloud import read_ply as read_ply, write_ply as write_ply, write_points as write_points
 from ._stripes import read_stripes as read_stripes, write_stripes as write_stripes
+
+
+def __getattr__(name):
+    # `LoadedCalibration` subclasses `scheimflux.calibrate.Calibration` (which imports
+    # this package): resolved on first use.
+    if name == "LoadedCalibration":
+        from ..calibrate._loaded import LoadedCalibration
+
+        return LoadedCalibration
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,7 +2,8 @@
 
 ```
 {"format": "scheimflux.calibration/1",
- "model": "thick-lens",                                   # or "pinhole"
+ "model": "thick-lens",                                   # or "pinhole", "opencv"
+ "sensor": {"width": 1600, "height": 1200},                # px
  "camera": {"f": {"value": 97.0, "unit": "mm"}, "e": {...}, "z0": {...},
             "phi": {"value": 2.87, "unit": "deg"}, "theta": {...},
             "x0": {"value": 800.1, "unit": "px"}, "y0": {...},
@@ -13,35 +14,56 @@
  "laser_plane": {"n_per_mm": [A, B, C], "unit_normal": [nx, ny, nz], "distance_mm": d},
  "stage": {"R_m_c": [[...], [...], [...]], "t_m_c_mm": [tx, ty, tz],     # optional
            "delta_omega_deg": 10.0, "gauge_eccentricity_mm": [ex, ey]},
+ "board_poses": {"rotvec": [[rx, ry, rz], ...], "translation_mm": [[tx, ty, tz], ...]},
  "diagnostics": {"reprojection_rms_px": ..., "laser_plane_rms_mm": ..., "gauge_rms_mm": ...,
                  "solves": {"camera": {"steps": 12, "converged": true, "time_s": 3.1}, ...},
-                 "frozen": ["camera.dx", ...], "converged": true, ...},
+                 "frozen": ["camera.dx", ...], "converged": true,
+                 "sigma_corner_px": 0.03, "sigma_stripe_mm": 1.4e-4, "robust": null, ...},
  "software": {"name": "scheimflux", "version": "0.1.0"}}
 ```
 
 The pinhole model (paper eq. 14) has `alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
-`"distortion": {"model": "none"}`. Distortion models: `"none"`, `"radial-tangential"`
-(k1, k2, k3, p1, p2) and `"division"` (kappa), all dimensionless (unit `"1"`), acting in
-the untilted image plane.
+`"distortion": {"model": "none"}`. OpenCV's model (`"model": "opencv"`, equal to
+`cv2.projectPoints`) has `fx`, `fy`, `cx`, `cy` (px), `tau_x`, `tau_y` (deg: the sensor
+tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4", "k5",
+"k6", "s1", "s2", "s3", "s4"}` (OpenCV's order). Distortion models of the thick lens:
+`"none"`, `"radial-tangential"` (k1, k2, k3, p1, p2) and `"division"` (kappa), all
+dimensionless (unit `"1"`), acting in the untilted image plane.
+
+`laser_plane` is absent in a camera-only calibration (no stripe pixels on the boards):
+such a file serves OpenCV export, not reconstruction. `board_poses` (`T_c_b` of each
+view: rotation vector in rad, translation in mm) and the noise weights in `diagnostics`
+let [`read_calibration`][] rebuild the full calibration from the observations
+(`read_calibration(path, observations=obs)`: diagnostics, point uncertainty, refinement).
 
 Angles are written in degrees and read back in radians; the degree values are chosen
 so that the conversion back reproduces the radians bit for bit. The laser plane is
 `n · X = 1` in the camera frame; `unit_normal` and `distance_mm` are written for people
 and, when present, must agree with `n_per_mm`. `R_m_c`, `t_m_c_mm` map camera to
 measurement coordinates (`X_m = R_m_c X_c + t_m_c`, frame 0 of a scan).
+
+Reading checks every key (unknown keys are refused, with the closest valid name) and
+every value's range: f, z0, pixel pitch, α, β, fx, fy positive; |φ|, |θ|, |τx|, |τy|
+below 90°; all numbers finite; a laser plane at least `MIN_PLANE_DISTANCE_MM` from the
+projection centre; `R_m_c` a rotation. `diagnostics` and `software` are free-form. A
+file whose solves did not converge (`"converged": false`) is read with an
+`UnconvergedCalibrationWarning`.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import difflib
 import importlib.metadata
 import math
 import os
+import warnings
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
-from ..camera._distortion import Division, NoDistortion, RadialTangential
+from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
+from ..camera._opencv import OpenCVCamera
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._plane import LaserPlane
@@ -65,47 +87,87 @@ CAMERA_PARAMETERS = {
         ("dy", "mm"),
     ),
     "pinhole": (("alpha", "px"), ("beta", "px"), ("gamma", "px"), ("x0", "px"), ("y0", "px")),
+    "opencv": (
+        ("fx", "px"),
+        ("fy", "px"),
+        ("cx", "px"),
+        ("cy", "px"),
+        ("tau_x", "deg"),
+        ("tau_y", "deg"),
+    ),
 }
+_CAMERA_CLASSES = {"thick-lens": ThickLensScheimpflug, "pinhole": Pinhole, "opencv": OpenCVCamera}
 DISTORTION_PARAMETERS = {
     "none": (),
     "radial-tangential": ("k1", "k2", "k3", "p1", "p2"),
     "division": ("kappa",),
+    "opencv": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
 }
 _DISTORTION_CLASSES = {
     "none": NoDistortion,
     "radial-tangential": RadialTangential,
     "division": Division,
+    "opencv": OpenCVDistortion,
 }
+# the distortion models each camera model may hold
+_MODEL_DISTORTIONS = {
+    "thick-lens": ("none", "radial-tangential", "division"),
+    "pinhole": ("none",),
+    "opencv": ("opencv",),
+}
+# Parameters that must be positive (name: why), and angles that must lie within ±90°.
+_POSITIVE = {
+    "f": "the focal length",
+    "z0": "the sensor lies behind the lens",
+    "dx": "pixel pitch",
+    "dy": "pixel pitch",
+    "alpha": "a focal length in px",
+    "beta": "a focal length in px",
+    "fx": "a focal length in px",
+    "fy": "a focal length in px",
+}
+_ANGLES = ("phi", "theta", "tau_x", "tau_y")
 # |RᵀR − I| and |det R − 1| allowed for a rotation read from a file.
 ROTATION_TOLERANCE = 1e-9
+# A laser plane this close to the projection centre (mm) cannot triangulate: every pixel's
+# ray meets it next to the centre, so all points collapse onto one spot.
+MIN_PLANE_DISTANCE_MM = 0.1
+
+_TOP_KEYS = (
+    "format",
+    "model",
+    "sensor",
+    "camera",
+    "laser_plane",
+    "stage",
+    "board_poses",
+    "diagnostics",
+    "software",
+)
+_SENSOR_KEYS = ("width", "height")
+_PARAMETER_KEYS = ("value", "unit")
+_PLANE_KEYS = ("n_per_mm", "unit_normal", "distance_mm")
+_STAGE_KEYS = ("R_m_c", "t_m_c_mm", "delta_omega_deg", "gauge_eccentricity_mm")
+_POSES_KEYS = ("rotvec", "translation_mm")
+_SOFTWARE_KEYS = ("name", "version")
 
 
 class CalibrationFileError(ValueError):
     """A malformed calibration file; the message names the problem."""
 
 
-@dataclasses.dataclass(frozen=True)
-class LoadedCalibration:
-    """A calibration read from a file.
+class UnconvergedCalibrationWarning(UserWarning):
+    """A calibration file records a solve that did not converge."""
 
-    **Fields:**
-    - `camera`: `ThickLensScheimpflug` or `Pinhole`.
-    - `plane`: the `LaserPlane` (camera frame).
-    - `stage`: the `RotaryStage`, or None when no stage was calibrated.
-    - `eccentricity_mm`: the gauge axis's offset from the table axis `(2,)`, or None.
-    - `model`: `"thick-lens"` or `"pinhole"`; `distortion`: the distortion model's name.
-    - `diagnostics`: the file's diagnostics (a dict, possibly empty).
-    - `raw`: the whole decoded document.
-    """
 
-    camera: ThickLensScheimpflug | Pinhole
-    plane: LaserPlane
-    stage: RotaryStage | None
-    eccentricity_mm: np.ndarray | None
-    model: str
-    distortion: str
-    diagnostics: dict
-    raw: dict
+def __getattr__(name):
+    # `LoadedCalibration` subclasses `scheimflux.calibrate.Calibration`, which imports
+    # this package: resolved on first use to keep the import order free of cycles.
+    if name == "LoadedCalibration":
+        from ..calibrate._loaded import LoadedCalibration
+
+        return LoadedCalibration
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ----------------------------------------------------------------------------- writing
@@ -140,25 +202,30 @@ def distortion_name(distortion) -> str:
     )
 
 
+def camera_model(camera) -> str:
+    """The file's model name of a camera (`"thick-lens"`, `"pinhole"`, `"opencv"`)."""
+    for model, cls in _CAMERA_CLASSES.items():
+        if isinstance(camera, cls):
+            return model
+    raise ValueError(
+        f"cannot store a {type(camera).__name__} camera: the calibration file holds "
+        f"{', '.join(CAMERA_PARAMETERS)} cameras"
+    )
+
+
 def camera_to_dict(camera) -> dict:
-    """`(model, camera dict)` pieces of the file for a thick-lens or pinhole camera."""
-    if isinstance(camera, ThickLensScheimpflug):
-        model = "thick-lens"
-    elif isinstance(camera, Pinhole):
-        model = "pinhole"
-    else:
-        raise ValueError(
-            f"cannot store a {type(camera).__name__} camera: the calibration file holds "
-            "thick-lens and pinhole cameras"
-        )
+    """The `camera` section of the file for a thick-lens, pinhole or OpenCV camera."""
+    model = camera_model(camera)
     doc = {name: _value(getattr(camera, name), unit) for name, unit in CAMERA_PARAMETERS[model]}
-    if model == "thick-lens":
+    if model == "pinhole":
+        dist = {"model": "none"}
+    else:
         dname = distortion_name(camera.distortion)
+        if dname not in _MODEL_DISTORTIONS[model]:
+            raise ValueError(f"cannot store a {model} camera with {dname} distortion")
         dist = {"model": dname}
         for p in DISTORTION_PARAMETERS[dname]:
             dist[p] = _value(getattr(camera.distortion, p), "1")
-    else:
-        dist = {"model": "none"}
     doc["distortion"] = dist
     return doc
 
@@ -186,6 +253,12 @@ def stage_to_dict(stage: RotaryStage, eccentricity_mm=None) -> dict:
     if eccentricity_mm is not None:
         doc["gauge_eccentricity_mm"] = _floats(np.reshape(eccentricity_mm, (2,)))
     return doc
+
+
+def poses_to_dict(poses: Pose) -> dict:
+    rv = np.asarray(poses.rotvec, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(poses.translation, dtype=np.float64).reshape(-1, 3)
+    return {"rotvec": [_floats(r) for r in rv], "translation_mm": [_floats(r) for r in t]}
 
 
 def _jsonable(v: Any) -> Any:
@@ -216,46 +289,69 @@ def _version() -> str:
         return "unknown"
 
 
+def _weights(cal) -> dict:
+    """The noise weights of the residuals (to rebuild them from the observations)."""
+    from ..calibrate._model import CalibrationData
+
+    data = getattr(cal, "data", None)
+    if not isinstance(data, CalibrationData):
+        return {}
+    return {
+        "sigma_corner_px": float(data.sigma_corner_px),
+        "sigma_stripe_mm": float(data.sigma_stripe_mm),
+        "robust": data.robust,
+    }
+
+
 def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
-    """A `Calibration` (from `scheimflux.calibrate.calibrate`) as a JSON-ready dict.
+    """A `Calibration` (from `scheimflux.calibrate.calibrate`, or read back) as a JSON-ready
+    dict.
 
     `diagnostics` adds entries to the file's diagnostics (they override the computed
-    ones of the same name).
+    ones of the same name). A calibration read from a file keeps its file's diagnostics.
     """
     params = cal.params
-    if params.plane is None:
-        raise ValueError("the calibration has no laser plane: nothing to measure with")
-    doc = {
-        "format": FORMAT,
-        "model": cal.model,
-        "camera": camera_to_dict(params.camera),
-        "laser_plane": plane_to_dict(params.plane),
-    }
-    model = "thick-lens" if isinstance(params.camera, ThickLensScheimpflug) else "pinhole"
+    model = camera_model(params.camera)
     if model != cal.model:
         raise ValueError(f"calibration says model {cal.model!r} but holds a {model} camera")
+    doc = {"format": FORMAT, "model": cal.model}
+    size = getattr(cal, "sensor_size", None)
+    if size is not None and all(int(v) > 0 for v in size):
+        doc["sensor"] = {"width": int(size[0]), "height": int(size[1])}
+    doc["camera"] = camera_to_dict(params.camera)
+    if params.plane is not None:
+        doc["laser_plane"] = plane_to_dict(params.plane)
     if params.stage is not None:
+        if params.plane is None:
+            raise ValueError("the calibration has a stage but no laser plane")
         doc["stage"] = stage_to_dict(params.stage, params.eccentricity)
+    if params.board_poses is not None and np.shape(params.board_poses.rotvec)[0] > 0:
+        doc["board_poses"] = poses_to_dict(params.board_poses)
     fits = dict(getattr(cal, "fits", {}) or {})
-    diag = {
-        "reprojection_rms_px": cal.reprojection_rms_px,
-        "laser_plane_rms_mm": cal.plane_rms_mm,
-        "gauge_rms_mm": cal.gauge_rms_mm,
-        "init": getattr(cal, "init", None),
-        "joint": getattr(cal, "joint", None),
-        "solves": {
-            name: {
-                "steps": int(fit.steps),
-                "converged": bool(fit.converged),
-                "time_s": float(fit.time_s),
-                "cost": float(fit.cost),
-                **({"message": str(fit.message)} if fit.message else {}),
-            }
-            for name, fit in fits.items()
-        },
-        "converged": all(bool(fit.converged) for fit in fits.values()),
-        "frozen": list(getattr(cal, "freeze", ()) or ()),
-    }
+    before = getattr(cal, "diagnostics", None)
+    diag = dict(before) if isinstance(before, dict) else {}
+    diag.update(
+        {
+            "reprojection_rms_px": cal.reprojection_rms_px,
+            "laser_plane_rms_mm": cal.plane_rms_mm,
+            "gauge_rms_mm": cal.gauge_rms_mm,
+            "init": getattr(cal, "init", None),
+            "joint": getattr(cal, "joint", None),
+            "solves": {
+                name: {
+                    "steps": int(fit.steps),
+                    "converged": bool(fit.converged),
+                    "time_s": float(fit.time_s),
+                    "cost": float(fit.cost),
+                    **({"message": str(fit.message)} if fit.message else {}),
+                }
+                for name, fit in fits.items()
+            },
+            "converged": all(bool(fit.converged) for fit in fits.values()),
+            "frozen": list(getattr(cal, "freeze", ()) or ()),
+            **_weights(cal),
+        }
+    )
     diag.update(diagnostics or {})
     doc["diagnostics"] = _jsonable(diag)
     doc["software"] = {"name": "scheimflux", "version": _version()}
@@ -277,9 +373,27 @@ def write_calibration(
 # ----------------------------------------------------------------------------- reading
 
 
-def _require(d, key: str, where: str):
+def _object(d, where: str) -> dict:
     if not isinstance(d, dict):
         raise CalibrationFileError(f"{where or 'the document'} must be a JSON object")
+    return d
+
+
+def _check_keys(d: dict, allowed, where: str) -> None:
+    """Refuse keys not in `allowed`, suggesting the closest valid one."""
+    for key in d:
+        if key in allowed:
+            continue
+        at = f"{where}.{key}" if where else str(key)
+        close = difflib.get_close_matches(str(key), list(allowed), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise CalibrationFileError(
+            f"unknown key {at}{hint}; allowed here: {', '.join(allowed)}"
+        )
+
+
+def _require(d, key: str, where: str):
+    _object(d, where)
     if key not in d:
         raise CalibrationFileError(f"missing key {where + '.' if where else ''}{key}")
     return d[key]
@@ -310,47 +424,57 @@ def _parameter(d, name: str, unit: str, where: str) -> float:
         raise CalibrationFileError(
             f'{at} must be {{"value": number, "unit": "{unit}"}}, got {entry!r}'
         )
+    _check_keys(entry, _PARAMETER_KEYS, at)
     value = _number(_require(entry, "value", at), f"{at}.value")
     got = _require(entry, "unit", at)
     if got != unit:
         raise CalibrationFileError(f"{at}.unit must be {unit!r}, got {got!r}")
+    if name in _POSITIVE and value <= 0:
+        raise CalibrationFileError(
+            f"{at}.value must be positive ({_POSITIVE[name]}), got {value!r} {unit}"
+        )
+    if unit == "deg" and name in _ANGLES and not abs(value) < 90.0:
+        raise CalibrationFileError(f"{at}.value must lie within ±90°, got {value!r}°")
     return math.radians(value) if unit == "deg" else value
 
 
 def _camera(doc: dict, model: str):
-    cd = _require(doc, "camera", "")
-    if not isinstance(cd, dict):
-        raise CalibrationFileError("camera must be a JSON object")
+    cd = _object(_require(doc, "camera", ""), "camera")
+    names = tuple(n for n, _ in CAMERA_PARAMETERS[model])
+    _check_keys(cd, names + ("distortion",), "camera")
     values = {n: _parameter(cd, n, u, "camera") for n, u in CAMERA_PARAMETERS[model]}
-    dd = _require(cd, "distortion", "camera")
+    dd = _object(_require(cd, "distortion", "camera"), "camera.distortion")
     dname = _require(dd, "model", "camera.distortion")
-    if dname not in DISTORTION_PARAMETERS:
+    allowed = _MODEL_DISTORTIONS[model]
+    if dname not in allowed:
         raise CalibrationFileError(
-            f"camera.distortion.model must be one of {list(DISTORTION_PARAMETERS)}, got {dname!r}"
+            f"camera.distortion.model of the {model} model must be one of {list(allowed)}, "
+            f"got {dname!r}"
         )
+    _check_keys(dd, ("model",) + DISTORTION_PARAMETERS[dname], "camera.distortion")
+    coeffs = [_parameter(dd, p, "1", "camera.distortion") for p in DISTORTION_PARAMETERS[dname]]
     if model == "pinhole":
-        if dname != "none":
-            raise CalibrationFileError(
-                f"the pinhole model has no distortion; camera.distortion.model is {dname!r}"
-            )
-        camera = Pinhole(**values)
-    else:
-        dist = _DISTORTION_CLASSES[dname](
-            *(_parameter(dd, p, "1", "camera.distortion") for p in DISTORTION_PARAMETERS[dname])
-        )
-        for name in ("dx", "dy"):
-            if values[name] <= 0:
-                raise CalibrationFileError(f"camera.{name} (pixel pitch) must be positive")
-        camera = ThickLensScheimpflug(**values, distortion=dist)
-    return camera, dname
+        return Pinhole(**values), dname
+    dist = _DISTORTION_CLASSES[dname](*coeffs)
+    return _CAMERA_CLASSES[model](**values, distortion=dist), dname
 
 
-def _plane(doc: dict) -> LaserPlane:
-    pd = _require(doc, "laser_plane", "")
+def _plane(doc: dict) -> LaserPlane | None:
+    pd = doc.get("laser_plane")
+    if pd is None:
+        return None  # a camera-only calibration
+    pd = _object(pd, "laser_plane")
+    _check_keys(pd, _PLANE_KEYS, "laser_plane")
     n = _vector(_require(pd, "n_per_mm", "laser_plane"), 3, "laser_plane.n_per_mm")
     norm = float(np.linalg.norm(n))
     if norm == 0:
         raise CalibrationFileError("laser_plane.n_per_mm must not be zero")
+    if not 1.0 / norm >= MIN_PLANE_DISTANCE_MM:
+        raise CalibrationFileError(
+            f"laser_plane.n_per_mm is degenerate: the plane passes {1e3 / norm:.3g} µm from "
+            f"the projection centre (at least {MIN_PLANE_DISTANCE_MM} mm needed to "
+            "triangulate)"
+        )
     if "unit_normal" in pd:
         u = _vector(pd["unit_normal"], 3, "laser_plane.unit_normal")
         if np.max(np.abs(u - n / norm)) > 1e-9:
@@ -374,6 +498,7 @@ def _stage(doc: dict) -> tuple[RotaryStage | None, np.ndarray | None]:
         return None, None
     if not isinstance(sd, dict):
         raise CalibrationFileError("stage must be a JSON object (or absent)")
+    _check_keys(sd, _STAGE_KEYS, "stage")
     R = _matrix3(_require(sd, "R_m_c", "stage"), "stage.R_m_c")
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     det = float(np.linalg.det(R))
@@ -382,43 +507,154 @@ def _stage(doc: dict) -> tuple[RotaryStage | None, np.ndarray | None]:
             f"stage.R_m_c is not a rotation matrix (max |R^T R - I| = {err:.3g}, det = {det:.9g})"
         )
     t = _vector(_require(sd, "t_m_c_mm", "stage"), 3, "stage.t_m_c_mm")
-    dw = math.radians(_number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg"))
+    dw_deg = _number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg")
+    if not 0 < abs(dw_deg) < 360:
+        raise CalibrationFileError(
+            f"stage.delta_omega_deg must be non-zero and within ±360°, got {dw_deg!r}"
+        )
     ecc = None
     if sd.get("gauge_eccentricity_mm") is not None:
         ecc = _vector(sd["gauge_eccentricity_mm"], 2, "stage.gauge_eccentricity_mm")
-    return RotaryStage(pose=Pose.from_matrix(R, t), delta_omega=dw), ecc
+    return RotaryStage(pose=Pose.from_matrix(R, t), delta_omega=math.radians(dw_deg)), ecc
 
 
-def parse_calibration(doc) -> LoadedCalibration:
-    """Validate a decoded calibration document; raises `CalibrationFileError`."""
+def _sensor(doc: dict) -> tuple[int, int] | None:
+    sd = doc.get("sensor")
+    if sd is None:
+        return None
+    sd = _object(sd, "sensor")
+    _check_keys(sd, _SENSOR_KEYS, "sensor")
+    out = []
+    for key in _SENSOR_KEYS:
+        v = _require(sd, key, "sensor")
+        if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
+            raise CalibrationFileError(f"sensor.{key} must be a positive integer, got {v!r}")
+        out.append(int(v))
+    return out[0], out[1]
+
+
+def _rows(v, where: str) -> np.ndarray:
+    if not isinstance(v, list):
+        raise CalibrationFileError(f"{where} must be a list of [x, y, z]")
+    return np.stack([_vector(r, 3, f"{where}[{i}]") for i, r in enumerate(v)] or [np.zeros(3)])[
+        : len(v)
+    ]
+
+
+def _poses(doc: dict) -> Pose:
+    pd = doc.get("board_poses")
+    if pd is None:
+        return Pose(np.zeros((0, 3)), np.zeros((0, 3)))
+    pd = _object(pd, "board_poses")
+    _check_keys(pd, _POSES_KEYS, "board_poses")
+    rv = _rows(_require(pd, "rotvec", "board_poses"), "board_poses.rotvec")
+    t = _rows(_require(pd, "translation_mm", "board_poses"), "board_poses.translation_mm")
+    if len(rv) != len(t):
+        raise CalibrationFileError(
+            f"board_poses.rotvec has {len(rv)} rows but board_poses.translation_mm {len(t)}"
+        )
+    return Pose(rv, t)
+
+
+def _diagnostics(doc: dict) -> dict:
+    diagnostics = doc.get("diagnostics", {})
+    if diagnostics is None:
+        return {}
+    if not isinstance(diagnostics, dict):
+        raise CalibrationFileError("diagnostics must be a JSON object")
+    return diagnostics
+
+
+def parse_calibration(doc, *, observations=None, source: str = "the calibration"):
+    """Validate a decoded calibration document; raises `CalibrationFileError`.
+
+    **Returns:** a `LoadedCalibration` (a `scheimflux.calibrate.Calibration`); see
+    [`read_calibration`][] for `observations`.
+    """
+    from ..calibrate._loaded import restore_calibration
+    from ..calibrate._model import SystemParams
+
     if not isinstance(doc, dict):
         raise CalibrationFileError("a calibration file must hold a JSON object")
     fmt = doc.get("format")
     if fmt != FORMAT:
         raise CalibrationFileError(f"format must be {FORMAT!r}, got {fmt!r}")
+    _check_keys(doc, _TOP_KEYS, "")
     model = _require(doc, "model", "")
     if model not in CAMERA_PARAMETERS:
         raise CalibrationFileError(f"model must be one of {list(CAMERA_PARAMETERS)}, got {model!r}")
+    if isinstance(doc.get("software"), dict):
+        _check_keys(doc["software"], _SOFTWARE_KEYS, "software")
+    sensor = _sensor(doc)
     camera, dname = _camera(doc, model)
     plane = _plane(doc)
     stage, ecc = _stage(doc)
-    diagnostics = doc.get("diagnostics", {})
-    if diagnostics is None:
-        diagnostics = {}
-    if not isinstance(diagnostics, dict):
-        raise CalibrationFileError("diagnostics must be a JSON object")
-    return LoadedCalibration(camera, plane, stage, ecc, model, dname, diagnostics, doc)
+    if stage is not None and plane is None:
+        raise CalibrationFileError("missing key laser_plane (the stage needs the laser plane)")
+    poses = _poses(doc)
+    diagnostics = _diagnostics(doc)
+    params = SystemParams(
+        camera,
+        Pose(jnp.asarray(poses.rotvec), jnp.asarray(poses.translation)),
+        plane,
+        stage,
+        None if ecc is None else jnp.asarray(ecc),
+    )
+    return restore_calibration(
+        params=params,
+        model=model,
+        distortion=dname,
+        diagnostics=diagnostics,
+        sensor_size=sensor,
+        eccentricity_mm=ecc,
+        raw=doc,
+        observations=observations,
+        source=source,
+    )
 
 
-def read_calibration(path: str | os.PathLike) -> LoadedCalibration:
+def read_calibration(path: str | os.PathLike, *, observations=None):
     """Read and validate a calibration file; errors name the file and the problem.
 
+    **Arguments:**
+    - `path`: a `scheimflux.calibration/1` file.
+    - `observations`: the `Observations` (or the path of the observations file) the
+      calibration was computed from. With them the result supports everything the
+      in-memory calibration does — `scheimflux.diagnostics`, `point_uncertainty`,
+      `residual_function` and `refine` — on the same residuals (rebuilt with the file's
+      noise weights at the stored optimum). Without them `cal.data` raises a clear error
+      when used.
+
+    **Returns:** a `LoadedCalibration` (a `scheimflux.calibrate.Calibration` with
+    `camera`, `plane` (None for a camera-only calibration), `stage`, `eccentricity_mm`,
+    `sensor_size` (None if not recorded), `diagnostics` and `raw`).
+
     **Raises:** `FileNotFoundError` if missing; `ValueError` (`CalibrationFileError`)
-    for invalid JSON, another format, missing keys, wrong shapes or types, units other
-    than the file's, an `R_m_c` that is not a rotation, or an unknown model/distortion.
+    for invalid JSON, another format, missing or unknown keys, wrong shapes or types,
+    units other than the file's, values out of range, an `R_m_c` that is not a rotation,
+    or an unknown model/distortion; `ValueError` for observations that do not match.
+    Warns `UnconvergedCalibrationWarning` when the file records an unconverged solve.
     """
     doc = load_json(path, "calibration")
+    if isinstance(observations, (str, os.PathLike)):
+        from ._observations import read_observations
+
+        observations = read_observations(observations)
     try:
-        return parse_calibration(doc)
+        cal = parse_calibration(doc, observations=observations, source=os.fspath(path))
     except CalibrationFileError as err:
         raise CalibrationFileError(f"{os.fspath(path)}: {err}") from None
+    if not cal.converged:
+        failed = [
+            name
+            for name, s in (cal.diagnostics.get("solves") or {}).items()
+            if isinstance(s, dict) and not s.get("converged", True)
+        ]
+        warnings.warn(
+            f"{os.fspath(path)}: this calibration did NOT converge"
+            + (f" (solves: {', '.join(failed)})" if failed else "")
+            + "; its numbers may be wrong",
+            UnconvergedCalibrationWarning,
+            stacklevel=2,
+        )
+    return cal
