@@ -160,9 +160,11 @@ def consistent(
     r0 = yx - slope * xs
     r0 = np.abs(r0 - np.median(r0))
     seed = r0 <= max(20.0, 5.0 * 1.4826 * float(np.median(r0)))
+    V = np.stack([np.ones_like(xs), xs, xs * xs, xs * xs * xs], 1)
     for _ in range(2):
-        coef = np.polyfit(xs[seed], yx[seed], 3)
-        r = np.abs(yx - np.polyval(coef, xs))
+        Vs = V[seed]
+        coef = np.linalg.solve(Vs.T @ Vs + 1e-12 * np.eye(4), Vs.T @ yx[seed])
+        r = np.abs(yx - V @ coef)
         seed = r <= max(1.0, 4.0 * 1.4826 * float(np.median(r[seed])))
         if seed.sum() < 12:
             seed[:] = True
