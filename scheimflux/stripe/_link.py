@@ -47,18 +47,16 @@ def link_segments(
     new = np.ones(idx.size, bool)
     new[1:] = (step > max_gap + 1) | (jump > max_jump_px * step)
     seg = np.cumsum(new) - 1
-    n_seg = int(seg[-1]) + 1
-    count = np.bincount(seg, minlength=n_seg)
-    peak = np.full(n_seg, -np.inf)
-    np.maximum.at(peak, seg, strength[idx])
+    first = np.flatnonzero(new)  # segments are runs: first/last member of each
+    last = np.r_[first[1:], idx.size] - 1
+    count = last - first + 1
+    peak = np.maximum.reduceat(strength[idx], first)
     keep_seg = (count >= min_points) & (peak >= high)
     # The smoothing kernels reach past the end of a line: its last `trim` centres come
     # from the fading tail of the filters, not from the line. Drop them.
     # Only ends that face a long gap (or the frame's first/last centre) are line ends;
     # a short gap is a few refused centres inside the line.
     if trim > 0:
-        first = np.flatnonzero(new)
-        last = np.r_[first[1:], idx.size] - 1
         # before the first and after the last centre: the scan lines to the frame edge
         # (a line that runs out of the image has no end to trim)
         gap_before = np.r_[idx[0], idx[first[1:]] - idx[last[:-1]] - 1]
@@ -70,11 +68,7 @@ def link_segments(
     else:
         keep_seg_pt = np.ones(idx.size, bool)
     kept = keep_seg[seg] & keep_seg_pt
-    span = np.zeros(n_seg)
-    np.maximum.at(span, seg, idx.astype(np.float64))
-    start = np.full(n_seg, np.inf)
-    np.minimum.at(start, seg, idx.astype(np.float64))
-    if not np.any(keep_seg & (span - start + 1 >= min_line)):
+    if not np.any(keep_seg & (idx[last] - idx[first] + 1 >= min_line)):
         return labels, np.zeros(y.shape, bool)
     labels[idx[kept]] = seg[kept]
     keep = np.zeros(y.shape, bool)
