@@ -6,8 +6,14 @@ ambient light (tilted, gently curved stripe, SNR 20, 8-bit).
 Speed: frames/s on 1600 x 1200 8-bit frames for band Steger (one thread; and the
 multi-frame API with a thread pool), and for a full-frame OpenCV Steger baseline
 (Gaussian derivative filters over the whole frame, per-column maximum) run here.
+Captures (issue 9): one row per realistic scene of `sf.simulate.render_capture`
+(laser on a dimmed checkerboard through the paper rig's ray tracer, circle grid,
+oblique and vertical lines, colour with white ambient light, saturated core, glints,
+JPEG), scored against the exact centre lines: bias, RMS, false-point rate (> 1 px
+off), coverage, frames/s; without and with the laser-off frame, beside the plain
+full-frame Steger baseline on the same image.
 
-    python benchmarks/stripe.py [--frames N] [--quick]
+    python benchmarks/stripe.py [--frames N] [--quick] [--captures-only] [--views K]
 """
 
 from __future__ import annotations
@@ -122,15 +128,114 @@ def speed_table(n_frames: int) -> None:
         print(f"{name:<58} {fps:>9.1f} {fps / base[0]:>6.1f}x {cps:>10.1f} {cps / base[1]:>6.1f}x")
 
 
+def _baseline_centres(img: np.ndarray, orientation: str) -> np.ndarray:
+    """The plain full-frame Steger baseline's (u, v) centre per scan line (grey)."""
+    grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    sigma = steger_sigma(5.0)
+    if orientation == "vertical-scan":
+        v = opencv_full_frame_steger(grey, sigma)
+        return np.stack([np.arange(grey.shape[1], dtype=np.float64), v], 1)
+    u = opencv_full_frame_steger(np.ascontiguousarray(grey.T), sigma)
+    return np.stack([u, np.arange(grey.shape[0], dtype=np.float64)], 1)
+
+
+def _scenes(quick: bool, n_views: int):
+    """(name, laser-on image, laser-off image, truth) per scene."""
+    from scheimflux.simulate import board_poses, board_view_capture, paper_rig, render_capture
+    from scheimflux.targets._board import Checkerboard
+
+    shape = (600, 800) if quick else SHAPE
+    out = []
+    t0 = time.perf_counter()
+    rig = paper_rig()
+    board = Checkerboard(11, 8, 0.3)
+    views = board_poses(rig, board, max(n_views, 1), seed=0)
+    for k, view in enumerate(views[:n_views]):
+        on, off, truth = board_view_capture(
+            rig, board, view, pair=True, seed=k, blur_px=(0.5, 1.2)
+        )
+        out.append((f"paper rig checkerboard, view {k}", on, off, truth))
+    print(f"(rendered {n_views} ray-traced views in {time.perf_counter() - t0:.0f} s)")
+    base = dict(line_angle_deg=15.0, line_offset_px=9.0, blur_px=(0.5, 1.2))
+    scenes = {
+        "checkerboard, 15 deg": {},
+        "circle grid": dict(target="circles"),
+        "oblique, 50 deg": dict(line_angle_deg=50.0),
+        "vertical, 88 deg": dict(line_angle_deg=88.0),
+        "curved": dict(line_curvature=0.0015),
+        "colour, white ambient 0.5": dict(colour=True, ambient=0.5),
+        "saturated core (peak 2.5)": dict(peak=2.5),
+        "12 glints": dict(glints=12),
+        "JPEG q85": dict(jpeg_quality=85),
+        "plain surface (no board)": dict(target="plain"),
+    }
+    for i, (name, kw) in enumerate(scenes.items()):
+        args = {**base, **kw}
+        on, truth = render_capture(shape=shape, seed=10 + i, **args)
+        off, _ = render_capture(shape=shape, seed=10 + i, laser_on=False, **args)
+        out.append((name, on, off, truth))
+    return out
+
+
+def capture_table(quick: bool, n_views: int) -> None:
+    from scheimflux.simulate import score_stripe
+
+    print("\ncaptures: centres vs the exact centre line (px; false = > 1 px off or past an end)")
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    head = f"{'scene':<36} {'mode':<9} {'bias':>8} {'rms':>6} {'false':>7} {'cover':>6} {'f/s':>6}"
+    print(head)
+    totals: dict[str, list] = {}
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for name, on, off, truth in _scenes(quick, n_views):
+            shape = on.shape[:2]
+            rows = []
+            for mode, kw in (("on", {}), ("on+off", {"background": off})):
+                extract_stripe(on, **kw)
+                t0 = time.perf_counter()
+                res = extract_stripe(on, **kw)
+                fps = 1.0 / (time.perf_counter() - t0)
+                rows.append((mode, score_stripe(res.valid_uv, res.orientation, truth, shape), fps))
+                orientation = res.orientation
+            t0 = time.perf_counter()
+            uv = _baseline_centres(on, orientation)
+            fps = 1.0 / (time.perf_counter() - t0)
+            rows.append(("baseline", score_stripe(uv, orientation, truth, shape), fps))
+            for mode, sc, fps in rows:
+                print(
+                    f"{name:<36} {mode:<9} {sc.bias:>+8.4f} {sc.rms:>6.3f} "
+                    f"{100 * sc.false_rate:>6.2f}% {100 * sc.coverage:>5.1f}% {fps:>6.1f}"
+                )
+                if name.startswith("paper rig"):
+                    totals.setdefault(mode, []).append(sc)
+    finally:
+        cv2.setNumThreads(previous)
+    for mode, scores in totals.items():
+        n = np.array([s.n for s in scores], float)
+        false = float(np.sum(n * [s.false_rate for s in scores]) / max(n.sum(), 1))
+        rms = float(np.sqrt(np.nansum(n * np.array([s.rms for s in scores]) ** 2) / n.sum()))
+        bias = float(np.nanmean([s.bias for s in scores]))
+        cover = float(np.mean([s.coverage for s in scores]))
+        print(
+            f"{'paper rig, all views':<36} {mode:<9} {bias:>+8.4f} {rms:>6.3f} "
+            f"{100 * false:>6.2f}% {100 * cover:>5.1f}%"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--frames", type=int, default=200, help="frames for the speed test")
     parser.add_argument("--quick", action="store_true", help="smaller accuracy images, 40 frames")
+    parser.add_argument("--captures-only", action="store_true", help="only the capture table")
+    parser.add_argument("--views", type=int, default=4, help="ray-traced board views")
     args = parser.parse_args()
-    accuracy_table(args.quick)
-    speed_table(40 if args.quick else args.frames)
+    if not args.captures_only:
+        accuracy_table(args.quick)
+        speed_table(40 if args.quick else args.frames)
+    capture_table(args.quick, args.views)
 
 
 if __name__ == "__main__":

@@ -123,3 +123,62 @@ def test_cli_errors(tmp_path, capsys):
     assert not (tmp_path / "a.json").exists()
     assert main(["extract", str(tmp_path / "missing"), "--out", str(tmp_path / "a.json")]) == 1
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_confidence_round_trip_and_old_files(tmp_path):
+    path = tmp_path / "stripes.json"
+    frames = [np.array([[1.0, 2.0], [3.0, np.nan], [4.0, 5.0]]), np.zeros((0, 2))]
+    write_stripes(path, frames, confidence=[np.array([0.5, 0.1, 1.0]), np.zeros(0)])
+    back, conf = read_stripes(path, confidence=True)
+    np.testing.assert_array_equal(conf[0], [0.5, 1.0])  # follows the dropped NaN row
+    assert conf[1].shape == (0,)
+    np.testing.assert_array_equal(read_stripes(path)[0], back[0])
+    # a file without confidences (older, or simulated centres) reads as NaN
+    old = tmp_path / "old.json"
+    old.write_text('{"format": "scheimflux.stripes/1", "frames": [[[1, 2], [3, 4]]]}')
+    pts, conf = read_stripes(old, confidence=True)
+    assert pts[0].shape == (2, 2) and np.isnan(conf[0]).all()
+    with pytest.raises(ValueError, match="confidences for"):
+        write_stripes(tmp_path / "c.json", frames, confidence=[np.ones(2), np.zeros(0)])
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        write_stripes(tmp_path / "d.json", frames, confidence=[np.full(3, 2.0), np.zeros(0)])
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"frames": [[[1, 2]]], "confidence": [[0.5, 0.5]]}')
+    with pytest.raises(ValueError, match="1 points but 2 confidences"):
+        read_stripes(bad, confidence=True)
+
+
+def test_cli_colour_laser_off_pairs_and_bad_frames(tmp_path, capsys):
+    from scheimflux.simulate import render_capture, score_stripe
+
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    shape = (240, 320)
+    truths = {}
+    for i, angle in enumerate((10.0, 80.0)):
+        kw = dict(shape=shape, colour=True, line_angle_deg=angle, line_offset_px=7.0, seed=i)
+        on, truth = render_capture(**kw)
+        off, _ = render_capture(laser_on=False, **kw)
+        cv2.imwrite(str(folder / f"pose{i}.png"), on)
+        cv2.imwrite(str(folder / f"pose{i}_off.png"), off)
+        truths[i] = truth
+    cv2.imwrite(str(folder / "pose2.png"), np.zeros((100, 100), np.uint8))  # wrong size
+    cv2.imwrite(str(folder / "pose3.jpg"), np.zeros(shape, np.uint8))  # blank
+    out = tmp_path / "s.json"
+    rc = main(["extract", str(folder), "--out", str(out), "--laser-off", "_off"])
+    captured = capsys.readouterr()
+    assert rc == 0
+    assert "pose2.png" in captured.err and "differs" in captured.err
+    assert "pose3.jpg" in captured.err and "no laser line" in captured.err
+    frames, conf = read_stripes(out, confidence=True)
+    assert len(frames) == 4  # laser-off files are not frames; bad frames keep their place
+    assert len(frames[2]) == 0 and len(frames[3]) == 0
+    for i in (0, 1):
+        orient = "vertical-scan" if i == 0 else "horizontal-scan"
+        s = score_stripe(frames[i], orient, truths[i], shape)
+        assert s.false_rate == 0.0 and s.coverage > 0.9
+        assert np.all((conf[i] > 0) & (conf[i] <= 1))
+    # without the pairs the laser-off images are frames too (and hold no line)
+    rc = main(["extract", str(folder), "--out", str(out), "--overwrite", "--channel", "red"])
+    assert rc == 0 and len(read_stripes(out)) == 6
+    assert "pose0_off.png: no laser line" in capsys.readouterr().err

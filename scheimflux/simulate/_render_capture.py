@@ -533,7 +533,7 @@ def score_stripe(
     )
 
 
-def board_view_capture(rig, board, view, **kwargs) -> tuple[np.ndarray, CaptureTruth]:
+def board_view_capture(rig, board, view, *, pair: bool = False, **kwargs):
     """[`render_capture`][] of one simulated board pose seen through the ray tracer.
 
     **Arguments:**
@@ -541,20 +541,28 @@ def board_view_capture(rig, board, view, **kwargs) -> tuple[np.ndarray, CaptureT
     - `board`: the `Checkerboard`.
     - `view`: a `BoardView` of [`board_poses`][] (its pose `T_c_b`); the laser line is
       the laser plane ∩ the board plane ([`stripe_on_board`][]).
+    - `pair`: also render the laser-off frame of the same pose.
     - `**kwargs`: passed to `render_capture` (not `board_to_pixel`, `shape`, `line_mm`).
 
-    **Returns:** `(image, truth)`, or raises `ValueError` when the laser misses the board.
+    **Returns:** `(image, truth)` (`(image, laser_off_image, truth)` with `pair`), or
+    raises `ValueError` when the laser misses the board. The traced map is memoised per
+    call, so the pair costs one inversion of the ray tracer.
     """
     from ._scenes import stripe_on_board
 
     R = np.asarray(view.T_c_b.R, np.float64)
     t = np.asarray(view.T_c_b.translation, np.float64)
 
+    memo: dict[bytes, np.ndarray] = {}
+
     def to_pixel(xy: np.ndarray) -> np.ndarray:
-        xy = np.asarray(xy, np.float64)
-        X = xy @ R[:, :2].T + t
-        uv, _ = rig.project(X)
-        return np.asarray(uv, np.float64)
+        xy = np.ascontiguousarray(xy, np.float64)
+        key = xy.tobytes()
+        if key not in memo:
+            X = xy @ R[:, :2].T + t
+            uv, _ = rig.project(X)
+            memo[key] = np.asarray(uv, np.float64)
+        return memo[key].copy()
 
     prof = stripe_on_board(rig, view.T_c_b, board)
     if len(prof.points_c) < 2:
@@ -562,6 +570,13 @@ def board_view_capture(rig, board, view, **kwargs) -> tuple[np.ndarray, CaptureT
     xb = (np.asarray(prof.points_c) - t) @ R  # board coordinates (z ~ 0)
     point, direction = xb[0, :2], xb[-1, :2] - xb[0, :2]
     w, h = (int(s) for s in rig.sensor_size)
-    return render_capture(
+    on, truth = render_capture(
         to_pixel, shape=(h, w), board=board, line_mm=(point, direction), **kwargs
     )
+    if not pair:
+        return on, truth
+    kwargs["laser_on"] = False
+    off, _ = render_capture(
+        to_pixel, shape=(h, w), board=board, line_mm=(point, direction), **kwargs
+    )
+    return on, off, truth

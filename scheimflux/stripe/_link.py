@@ -47,18 +47,16 @@ def link_segments(
     new = np.ones(idx.size, bool)
     new[1:] = (step > max_gap + 1) | (jump > max_jump_px * step)
     seg = np.cumsum(new) - 1
-    n_seg = int(seg[-1]) + 1
-    count = np.bincount(seg, minlength=n_seg)
-    peak = np.full(n_seg, -np.inf)
-    np.maximum.at(peak, seg, strength[idx])
+    first = np.flatnonzero(new)  # segments are runs: first/last member of each
+    last = np.r_[first[1:], idx.size] - 1
+    count = last - first + 1
+    peak = np.maximum.reduceat(strength[idx], first)
     keep_seg = (count >= min_points) & (peak >= high)
     # The smoothing kernels reach past the end of a line: its last `trim` centres come
     # from the fading tail of the filters, not from the line. Drop them.
     # Only ends that face a long gap (or the frame's first/last centre) are line ends;
     # a short gap is a few refused centres inside the line.
     if trim > 0:
-        first = np.flatnonzero(new)
-        last = np.r_[first[1:], idx.size] - 1
         # before the first and after the last centre: the scan lines to the frame edge
         # (a line that runs out of the image has no end to trim)
         gap_before = np.r_[idx[0], idx[first[1:]] - idx[last[:-1]] - 1]
@@ -70,11 +68,7 @@ def link_segments(
     else:
         keep_seg_pt = np.ones(idx.size, bool)
     kept = keep_seg[seg] & keep_seg_pt
-    span = np.zeros(n_seg)
-    np.maximum.at(span, seg, idx.astype(np.float64))
-    start = np.full(n_seg, np.inf)
-    np.minimum.at(start, seg, idx.astype(np.float64))
-    if not np.any(keep_seg & (span - start + 1 >= min_line)):
+    if not np.any(keep_seg & (idx[last] - idx[first] + 1 >= min_line)):
         return labels, np.zeros(y.shape, bool)
     labels[idx[kept]] = seg[kept]
     keep = np.zeros(y.shape, bool)
@@ -92,20 +86,26 @@ def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.
     n = y.size
     u = np.arange(n, dtype=np.float64) / half
     yw = np.where(w > 0, y, 0.0) * w
-
     lo = np.clip(np.arange(n) - half, 0, n)
     hi = np.clip(np.arange(n) + half + 1, 0, n)
-
-    def windowed(a):
-        c = np.concatenate([[0.0], np.cumsum(a)])
-        return c[hi] - c[lo]
-
-    S = [windowed(w * u**k) for k in range(5)]
-    T = [windowed(yw * u**k) for k in range(3)]
-    c = -u  # t = u_j + c
-    binom = ((1,), (1, 1), (1, 2, 1), (1, 3, 3, 1), (1, 4, 6, 4, 1))
-    St = [sum(binom[k][m] * c ** (k - m) * S[m] for m in range(k + 1)) for k in range(5)]
-    Tt = [sum(binom[k][m] * c ** (k - m) * T[m] for m in range(k + 1)) for k in range(3)]
+    # windowed sums of w u^k (k <= 4) and w y u^k (k <= 2) from one cumulative sum
+    u2 = u * u
+    cols = np.stack([w, w * u, w * u2, w * u2 * u, w * u2 * u2, yw, yw * u, yw * u2], 1)
+    c = np.zeros((n + 1, 8))
+    np.cumsum(cols, axis=0, out=c[1:])
+    win = c[hi] - c[lo]
+    S0, S1, S2, S3, S4, T0, T1, T2 = win.T
+    # the same sums in the local coordinate t = u_j - u_i (binomial expansion)
+    a = u
+    a2 = a * a
+    St = [
+        S0,
+        S1 - a * S0,
+        S2 - 2 * a * S1 + a2 * S0,
+        S3 - 3 * a * S2 + 3 * a2 * S1 - a2 * a * S0,
+        S4 - 4 * a * S3 + 6 * a2 * S2 - 4 * a2 * a * S1 + a2 * a2 * S0,
+    ]
+    Tt = [T0, T1 - a * T0, T2 - 2 * a * T1 + a2 * T0]
     # leave the point itself out (it sits at t = 0: only the zeroth sums hold it)
     St[0] = St[0] - w
     Tt[0] = Tt[0] - yw
@@ -128,8 +128,8 @@ def consistent(
 ) -> np.ndarray:
     """Which valid centres agree with a smooth line through their neighbours.
 
-    A robust local quadratic (± `half` scan lines, leave-one-out, three passes with
-    shrinking thresholds `max(1, 3 s)`, `max(0.5, 4 s)`, `max(floor_px, 5 s)` where `s`
+    A robust local quadratic (± `half` scan lines, leave-one-out, two passes with
+    shrinking thresholds `max(1, 3 s)`, then `max(floor_px, 5 s)` where `s`
     is the robust spread of the residuals) predicts each centre from the others; a
     centre farther from it is refused. This removes runs that leave the line to follow
     a checker edge (the laser's tail on a bright square makes a one-sided ridge along
@@ -154,9 +154,11 @@ def consistent(
     r0 = yx - slope * xs
     r0 = np.abs(r0 - np.median(r0))
     seed = r0 <= max(20.0, 5.0 * 1.4826 * float(np.median(r0)))
-    for _ in range(3):
-        coef = np.polyfit(xs[seed], yx[seed], 3)
-        r = np.abs(yx - np.polyval(coef, xs))
+    V = np.stack([np.ones_like(xs), xs, xs * xs, xs * xs * xs], 1)
+    for _ in range(2):
+        Vs = V[seed]
+        coef = np.linalg.solve(Vs.T @ Vs + 1e-12 * np.eye(4), Vs.T @ yx[seed])
+        r = np.abs(yx - V @ coef)
         seed = r <= max(1.0, 4.0 * 1.4826 * float(np.median(r[seed])))
         if seed.sum() < 12:
             seed[:] = True
@@ -164,7 +166,7 @@ def consistent(
     off_curve = np.zeros(valid.shape, bool)
     off_curve[x[~seed]] = True
     keep &= ~off_curve
-    for step, (factor, floor) in enumerate(((3.0, 1.0), (4.0, 0.5), (5.0, floor_px))):
+    for step, (factor, floor) in enumerate(((3.0, 1.0), (5.0, floor_px))):
         pred, count = _local_fit(yv, keep.astype(np.float64), half)
         if step == 0 and off_curve.any():
             # A piece of line the global cubic does not follow (a strongly curved line,

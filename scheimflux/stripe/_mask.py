@@ -18,8 +18,8 @@ def region_mask(points_px: Any, shape: tuple[int, ...], *, margin_px: float = 0.
     - `shape`: the image shape; its first two entries `(H, W)` are used.
     - `margin_px`: grow the hull by this distance (px, >= 0).
 
-    **Returns:** (H, W) bool, True inside the grown hull (all False with fewer than 3
-    finite points or a degenerate hull and no margin).
+    **Returns:** (H, W) bool, True inside the grown hull; all False with fewer than 3
+    finite points (no area to grow).
     """
     h, w = int(shape[0]), int(shape[1])
     pts = np.asarray(points_px, dtype=np.float64)
@@ -29,7 +29,7 @@ def region_mask(points_px: Any, shape: tuple[int, ...], *, margin_px: float = 0.
         raise ValueError(f"margin_px must be a finite distance >= 0, got {margin_px}")
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     out = np.zeros((h, w), np.uint8)
-    if len(pts) == 0:
+    if len(pts) < 3:
         return out.astype(bool)
     # Fixed-point vertices (1/16 px) for an accurate fill.
     hull = cv2.convexHull(np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2))
