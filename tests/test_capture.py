@@ -240,3 +240,35 @@ def test_partly_visible_charuco_detect_calibrate(tmp_path, capsys):
     # a model that fits leaves residuals at the noise floor (a little below it: the fit
     # absorbs p parameters of 2N); 10 % above it is the issue's acceptance bound
     assert rms <= 1.1 * floor
+
+
+def test_observations_sources_dropped_and_optional_pitch(tmp_path):
+    """The new keys round-trip; files without them (older files) read as before."""
+    import json
+
+    from scheimflux.io import DroppedView, Observations, View, write_observations
+
+    board = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]])
+    corners = np.array([[10.0, 20.0], [np.nan, np.nan], [12.5, 30.25], [40.0, 41.0]])
+    obs = Observations(
+        800, 600, None, board, [View(corners, np.zeros((0, 2)), ("view_0.jpg",))],
+        dropped=[DroppedView(3, ("view_3_board.png",), "image is blank (no contrast)")],
+    )  # fmt: skip
+    path = tmp_path / "obs.json"
+    write_observations(path, obs)
+    doc = json.loads(path.read_text())
+    assert "pixel_pitch_mm" not in doc["sensor"]
+    back = read_observations(path)
+    assert back.pixel_pitch_mm is None and back.views[0].source == ("view_0.jpg",)
+    assert back.dropped == obs.dropped
+    # an older file: pitch given, no source, no dropped_views
+    doc["sensor"]["pixel_pitch_mm"] = [0.0044, 0.0044]
+    del doc["views"][0]["source"], doc["dropped_views"]
+    path.write_text(json.dumps(doc))
+    old = read_observations(path)
+    assert old.pixel_pitch_mm == (0.0044, 0.0044) and old.views[0].source == ()
+    assert old.dropped == []
+    doc["dropped_views"] = [{"view": -1, "reason": "x"}]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"dropped_views\[0\].view must be a view number"):
+        read_observations(path)
