@@ -41,6 +41,10 @@ def test_write_scene_images_small(rig, tmp_path):
     with pytest.raises(FileExistsError, match="overwrite"):
         write_scene_images(out, rig, board, truth)
     assert (out / "view_0_board.png").read_bytes() == before
+    with pytest.raises(ValueError, match="jpg images hold 8 bits"):
+        write_scene_images(out / "j", rig, board, truth, ext="jpg", bit_depth=16)
+    with pytest.raises(ValueError, match="layout must be"):
+        write_scene_images(out / "j", rig, board, truth, layout="triple")
 
 
 @pytest.mark.slow
@@ -52,13 +56,10 @@ def test_images_detect_calibrate_reconstruct(rig, tmp_path, capsys):
     )
     images = tmp_path / "images"
     write_scene_images(images, rig, board, truth, ambient="low", seed=3)
-    # a user removes the views whose board is not wholly in the image (detect cannot
-    # find a partial board; calibrate refuses views without corners)
+    # views whose board is not wholly in the image: detect drops them (a checkerboard is
+    # found whole or not at all) and names them; calibrate never sees them
     whole = np.isfinite(truth.corners_px).all(axis=(1, 2))
     assert whole.sum() >= 4
-    for k in np.flatnonzero(~whole):
-        (images / f"view_{k}_board.png").unlink()
-        (images / f"view_{k}_stripe.png").unlink()
 
     obs_path, cal, pts = tmp_path / "obs.json", tmp_path / "cal.json", tmp_path / "pts.json"
     argv = [
@@ -74,6 +75,9 @@ def test_images_detect_calibrate_reconstruct(rig, tmp_path, capsys):
         str(d_omega),
         "--gauge-radius-mm",
         "17.5",
+        "--pixel-pitch-mm",
+        "0.0044",
+        "0.0044",
         "--out",
         str(obs_path),
     ]
@@ -81,6 +85,7 @@ def test_images_detect_calibrate_reconstruct(rig, tmp_path, capsys):
     obs = read_observations(obs_path)
     corners, mask = obs.corners()
     assert len(obs.views) == whole.sum() and mask.all()
+    assert sorted(d.view for d in obs.dropped) == np.flatnonzero(~whole).tolist()
     err = np.linalg.norm(corners - truth.corners_px[whole], axis=-1)
     assert err.max() < 0.1, err.max()
 

@@ -14,7 +14,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["board_region", "board_stripe", "grey_native", "laser_channel", "laser_free"]
+__all__ = [
+    "board_region",
+    "board_stripe",
+    "grey_native",
+    "laser_channel",
+    "laser_free",
+]
 
 
 def laser_free(image: Any) -> np.ndarray:

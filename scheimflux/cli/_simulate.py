@@ -9,8 +9,11 @@ Writes, into the folder given by --out,
   scan_stripes.json   the gauge scan's stripe pixels per frame (scheimflux.stripes/1:
                       the input of `scheimflux reconstruct`).
 With --images, also rendered images for `scheimflux detect`:
-  images/view_<k>_board.png, images/view_<k>_stripe.png   one pair per board pose;
+  images/view_<k>_board.png, images/view_<k>_stripe.png   one pair per board pose
+                              (--image-layout single: images/view_<k>.png, board and
+                              laser line in one image);
   images/scan/frame_<i>.png                              the gauge scan's frames.
+--image-ext jpg|tif|bmp and --colour (BGR, red laser) change the files' type.
 Pixels come from Snell's-law ray tracing onto the tilted sensor, never from a camera
 model. The default rig is the paper's x1.5 Scheimpflug system: the shipped double Gauss
 scaled to f = 97 mm, the sensor tilted as in the paper's Table 1.
@@ -85,6 +88,20 @@ def register(subparsers) -> None:
         default="low",
         help="background light of the rendered stripe images (default: %(default)s)",
     )
+    p.add_argument(
+        "--image-layout",
+        choices=("pair", "single"),
+        default="pair",
+        help="with --images: board and stripe images per view, or one image holding both "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--image-ext",
+        choices=("png", "jpg", "tif", "bmp"),
+        default="png",
+        help="with --images: file type (default: %(default)s)",
+    )
+    p.add_argument("--colour", action="store_true", help="with --images: BGR images, red laser")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
 
@@ -158,7 +175,7 @@ def run(args) -> int:
     outputs = list(paths)
     with_images = bool(getattr(args, "images", False))
     if with_images and os.path.isdir(images):
-        if any(n.endswith(".png") for n in os.listdir(images)):  # an earlier --images run
+        if any(n.startswith("view_") for n in os.listdir(images)):  # an earlier --images run
             outputs.append(images)
     refuse_to_clobber(*outputs, overwrite=args.overwrite)
     square = args.square_mm
@@ -202,6 +219,9 @@ def run(args) -> int:
                 rig,
                 board,
                 truth,
+                layout=args.image_layout,
+                ext=args.image_ext,
+                colour=args.colour,
                 ambient=args.ambient,
                 seed=args.seed,
                 overwrite=True,

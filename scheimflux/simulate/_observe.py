@@ -28,7 +28,7 @@ from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
 from ..io._files import load_json, write_json
 from ..io._observations import Nominal, Observations, StageScan, View
-from ..targets._board import Checkerboard
+from ..targets._target import Target
 from ._lens import paraxial
 from ._rig import Rig
 from ._scenes import (
@@ -129,7 +129,7 @@ def nominal_of(rig: Rig) -> Nominal:
 
 def simulate_observations(
     rig: Rig,
-    board: Checkerboard,
+    board: Target,
     *,
     n_views: Integral = 15,
     corner_noise_px: Real = 0.03,
@@ -146,7 +146,8 @@ def simulate_observations(
 
     **Arguments:**
     - `rig`: the simulated rig (`paper_rig()`, `build_rig(...)`).
-    - `board`: the checkerboard (e.g. `Checkerboard(11, 8, 0.3)` at |β| = 1.5).
+    - `board`: the target (e.g. `Checkerboard(11, 8, 0.3)` at |β| = 1.5; a `CharucoBoard`
+      or `CircleGrid` works too: only `points_mm`, `centre_mm` and `extent_mm` are used).
     - `n_views`: board poses ([`board_poses`][]); each also carries the laser line on the
       board ([`stripe_on_board`][]).
     - `corner_noise_px`, `stripe_noise_px`: Gaussian pixel noise (σ per coordinate).

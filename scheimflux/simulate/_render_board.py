@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-__all__ = ["BoardMap", "board_map", "render_checkerboard", "render_target"]
+__all__ = ["BoardMap", "board_map", "render_checkerboard"]
 
 _CHUNK_ELEMENTS = 1 << 20  # sub-samples evaluated at once
 

@@ -36,7 +36,7 @@ from jaxtyping import ArrayLike
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
-from ..targets._board import Checkerboard
+from ..targets._target import Target
 from ._lens import paraxial
 from ._rig import Rig
 
@@ -199,7 +199,7 @@ class BoardView:
 
 def _board_pose_list(
     rig: Rig,
-    board: Checkerboard,
+    board: Target,
     n: Integral,
     seed: Integral,
     max_tilt_deg: Real,
@@ -242,7 +242,7 @@ def _board_pose_list(
 
 def board_poses(
     rig: Rig,
-    board: Checkerboard,
+    board: Target,
     n: Integral = 15,
     *,
     seed: Integral = 0,
@@ -320,7 +320,7 @@ def _plane_line(n: np.ndarray, m: np.ndarray, hm: Real):
 
 
 def _board_stripe_points(
-    rig: Rig, field: _Field, T_c_b: Pose, board: Checkerboard, step_px: Real
+    rig: Rig, field: _Field, T_c_b: Pose, board: Target, step_px: Real
 ) -> np.ndarray:
     R, t = _pose_np(T_c_b)
     m = R[:, 2]
@@ -376,7 +376,7 @@ def _trace_stripes(
 def stripe_on_board(
     rig: Rig,
     T_c_b: Pose,
-    board: Checkerboard,
+    board: Target,
     *,
     step_px: Real = 2.0,
     noise_px: Real = 0.0,

@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._result import DetectionResult, grey_float, to_uint8
+from ._result import DetectionResult, grey_float, reject_off_grid, to_uint8
 
 __all__ = ["CharucoBoard", "detect_charuco", "aruco_dictionary_names"]
 
@@ -195,7 +195,7 @@ def detect_charuco(
         return DetectionResult(uv * np.nan, False, f"the {n} ChArUco corners found lie on a line")
     if refine:
         uv = _refine_found(norm, uv, board)
-    uv, n_out = _reject_outliers(uv, board)
+    uv, n_out = reject_off_grid(uv, board.points_mm, board.square_mm)
     n = int(np.isfinite(uv[:, 0]).sum())
     if n < min_corners:
         return DetectionResult(uv * np.nan, False, f"only {n} consistent ChArUco corner(s)")
@@ -203,42 +203,6 @@ def detect_charuco(
     if n_out:
         note += f"; {n_out} corner(s) off their neighbours' grid rejected"
     return DetectionResult(uv, True, note.lstrip("; "))
-
-
-def _reject_outliers(uv: np.ndarray, board: CharucoBoard) -> tuple[np.ndarray, int]:
-    """Drop corners that disagree with the homography of their neighbours.
-
-    Each corner is predicted from the found corners within two squares of it (a local
-    homography, robust LMedS fit, the corner itself left out): over so small a patch
-    lens distortion bends the grid by far less than a pixel. A corner more than
-    `max(0.5 px, 1 % of a square)` from its prediction (a marker misread, or the laser
-    line or a glint across the corner) is set to NaN."""
-    cx = board.squares_x - 1
-    ok = np.isfinite(uv[:, 0])
-    idx = np.flatnonzero(ok)
-    if idx.size < 8:
-        return uv, 0
-    ij = np.stack([idx % cx, idx // cx], axis=1)
-    xy = board.points_mm[idx, :2]
-    pts = uv[idx]
-    bad = []
-    for a in range(len(idx)):
-        near = np.flatnonzero((np.abs(ij - ij[a]).max(axis=1) <= 2) & (np.arange(len(idx)) != a))
-        if near.size < 6:
-            continue
-        Hm, _ = cv2.findHomography(xy[near], pts[near], cv2.LMEDS)
-        if Hm is None:
-            continue
-        pred = cv2.perspectiveTransform(xy[a][None, None], Hm)[0, 0]
-        scale = cv2.perspectiveTransform(
-            np.array([[xy[a], xy[a] + [board.square_mm, 0.0]]]), Hm
-        )[0]
-        square_px = float(np.linalg.norm(scale[1] - scale[0]))
-        if np.linalg.norm(pred - pts[a]) > max(0.5, 0.01 * square_px):
-            bad.append(idx[a])
-    out = uv.copy()
-    out[bad] = np.nan
-    return out, len(bad)
 
 
 def _refine_found(norm: np.ndarray, uv: np.ndarray, board: CharucoBoard) -> np.ndarray:

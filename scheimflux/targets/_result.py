@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import cv2
 import numpy as np
 
 __all__ = ["DetectionResult"]
@@ -78,3 +79,42 @@ def grey_float(image: Any) -> tuple[np.ndarray, str]:
 def to_uint8(norm: np.ndarray) -> np.ndarray:
     """8-bit copy of a normalised image (0 → 0, 1 → 255)."""
     return np.rint(np.clip(norm, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def reject_off_grid(
+    uv: np.ndarray, xy_mm: np.ndarray, pitch_mm: float, *, reach: float = 2.5
+) -> tuple[np.ndarray, int]:
+    """Drop points that disagree with the homography of their neighbours.
+
+    Each found point is predicted from the found points within `reach` pitches of it on
+    the board (a local homography: RANSAC, then least squares on its inliers; the point
+    itself left out): over so
+    small a patch lens distortion bends the grid by far less than a pixel. A point more
+    than `max(0.5 px, 1 % of a pitch)` from its prediction (a marker misread, a laser line
+    or a glint across a corner or circle) is set to NaN.
+
+    **Returns:** `(uv, n_rejected)`.
+    """
+    ok = np.all(np.isfinite(uv), axis=1)
+    idx = np.flatnonzero(ok)
+    if idx.size < 8:
+        return uv, 0
+    xy = np.asarray(xy_mm, np.float64)[idx, :2]
+    pts = uv[idx]
+    dist = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=-1)
+    bad = []
+    for a in range(len(idx)):
+        near = np.flatnonzero((dist[a] <= reach * pitch_mm) & (np.arange(len(idx)) != a))
+        if near.size < 6:
+            continue
+        step_px = float(np.median(np.linalg.norm(pts[near] - pts[a], axis=1) / dist[a, near]))
+        tol = max(0.5, 0.01 * step_px * pitch_mm)
+        Hm, _ = cv2.findHomography(xy[near], pts[near], cv2.RANSAC, 0.5 * tol)
+        if Hm is None:
+            continue
+        pred = cv2.perspectiveTransform(xy[a][None, None], Hm)[0, 0]
+        if np.linalg.norm(pred - pts[a]) > tol:
+            bad.append(idx[a])
+    out = uv.copy()
+    out[bad] = np.nan
+    return out, len(bad)

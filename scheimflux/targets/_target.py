@@ -17,7 +17,7 @@ from ._board import Checkerboard, parse_board_size
 from ._charuco import CharucoBoard, detect_charuco
 from ._circles import CircleGrid, detect_circles
 from ._detect import detect_checkerboard
-from ._result import DetectionResult
+from ._result import DetectionResult, reject_off_grid
 
 __all__ = ["TARGET_KINDS", "Target", "make_target", "detect_target"]
 
@@ -64,12 +64,24 @@ def make_target(
 def detect_target(image: Any, target: Target, *, mirrored: bool = False) -> DetectionResult:
     """Detect `target` in `image` with its detector (see the module's table).
 
+    Every target's points are then checked against their neighbours on the board
+    (`reject_off_grid`): a point off the local grid (the laser line or a glint across
+    it) is set to NaN and counted in the message.
+
     **Returns:** a [`DetectionResult`][] in the order of `target.points_mm`.
     """
-    if isinstance(target, Checkerboard):
-        return detect_checkerboard(image, target, mirrored=mirrored)
     if isinstance(target, CharucoBoard):
-        return detect_charuco(image, target)  # IDs fix the order: mirrors never match
-    if isinstance(target, CircleGrid):
-        return detect_circles(image, target, mirrored=mirrored)
-    raise TypeError(f"unknown target type {type(target).__name__}")
+        return detect_charuco(image, target)  # IDs fix the order; checks its own grid
+    if isinstance(target, Checkerboard):
+        res, pitch = detect_checkerboard(image, target, mirrored=mirrored), target.square_mm
+    elif isinstance(target, CircleGrid):
+        res, pitch = detect_circles(image, target, mirrored=mirrored), target.spacing_mm
+    else:
+        raise TypeError(f"unknown target type {type(target).__name__}")
+    if not res.found:
+        return res
+    uv, n_out = reject_off_grid(res.corners_px, target.points_mm, pitch)
+    if not n_out:
+        return res
+    note = f"{n_out} point(s) off their neighbours' grid rejected"
+    return DetectionResult(uv, True, f"{res.message}; {note}" if res.message else note)
