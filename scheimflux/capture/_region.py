@@ -17,8 +17,6 @@ import numpy as np
 __all__ = [
     "board_region",
     "board_stripe",
-    "grey_native",
-    "laser_channel",
     "laser_free",
 ]
 
@@ -30,30 +28,6 @@ def laser_free(image: Any) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] >= 3:
         return img[:, :, :3].min(axis=2)
-    return img
-
-
-def laser_channel(image: Any) -> np.ndarray:
-    """The image for stripe extraction: for colour, the per-pixel spread between the
-    brightest and the darkest channel (the laser's own light, without the grey room light
-    on the board); a grey image as it is."""
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] >= 3:
-        c = img[:, :, :3]
-        return (c.max(axis=2) - c.min(axis=2)).astype(img.dtype)
-    return grey_native(img)
-
-
-def grey_native(image: Any) -> np.ndarray:
-    """A grey copy in the image's own type: `(H, W)` as is, BGR through `cv2.cvtColor`."""
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] == 1:
-        return img[:, :, 0]
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        if img.dtype not in (np.uint8, np.uint16, np.float32):
-            img = img.astype(np.float32)
-        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        return cv2.cvtColor(img, code)
     return img
 
 
@@ -104,39 +78,25 @@ def board_region(
 
 
 def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None):
-    """The laser line on the board: `extract_stripe` on the grey image (for colour, the
-    laser's channel spread, `laser_channel`) with every pixel outside `mask` replaced by
-    a heavily blurred copy; centres within a stripe width of the region's edge are
-    marked outside.
+    """The laser line on the board: `extract_stripe` inside the board region `mask`
+    (colour images: the laser's channel, chosen by the extractor).
 
-    This adapter is the single place where `detect` extracts board stripes; it is meant
-    to be replaced by the stripe module's own mask support.
+    This is the single place where `detect` extracts board stripes. The extractor accepts
+    ridges only (checker edges, dots and marker borders are refused) and returns no centre
+    outside `mask`.
 
     **Returns:** `(StripeResult, inside)`: `inside` `(N,)` bool marks the centres on the
     board region. Raises `ValueError` when nothing can be extracted.
     """
     from ..stripe import extract_stripe
 
-    img = laser_channel(image)
     if not np.any(mask):
         raise ValueError("empty board region")
-    # outside the region: a heavily blurred copy, so that the region's edge is no step
-    # (a step would look like a line's flank); centres within a stripe width of the edge
-    # are dropped all the same
-    w = 5.0 if width_px is None else float(width_px)
-    work = img.astype(np.float32)
-    smooth = cv2.GaussianBlur(work, (0, 0), 4.0 * w)
-    work = np.where(mask, work, smooth)
-    if np.issubdtype(img.dtype, np.integer):
-        work = np.rint(work).astype(img.dtype)
-    result = extract_stripe(work, width_px=width_px)
-    edge = int(np.ceil(w))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * edge + 1, 2 * edge + 1))
-    core = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
+    result = extract_stripe(image, width_px=width_px, mask=mask)
     uv = result.uv
     inside = np.zeros(len(uv), bool)
     fin = np.all(np.isfinite(uv), axis=1)
     iu = np.clip(np.rint(uv[fin, 0]).astype(int), 0, mask.shape[1] - 1)
     iv = np.clip(np.rint(uv[fin, 1]).astype(int), 0, mask.shape[0] - 1)
-    inside[fin] = core[iv, iu]
+    inside[fin] = mask[iv, iu]
     return result, inside

@@ -234,7 +234,6 @@ def extract_scan(
     `shape`.
     """
     from ..stripe import extract_stripe
-    from ._region import grey_native
 
     folder = os.fspath(folder)
     if not os.path.isdir(folder):
@@ -260,7 +259,7 @@ def extract_scan(
             continue
         size(image, path)
         try:
-            frames.append(extract_stripe(grey_native(image), width_px=stripe_width_px).valid_uv)
+            frames.append(extract_stripe(image, width_px=stripe_width_px).valid_uv)
         except ValueError as err:
             say(f"{name}: no stripe extracted: {err}")
             frames.append(np.zeros((0, 2)))
