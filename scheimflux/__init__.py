@@ -15,6 +15,8 @@ if os.environ.get("SCHEIMFLUX_NO_X64", "") in ("", "0"):
 from . import (
     calibrate as calibrate,
     camera as camera,
+    capture as capture,
+    export as export,
     geometry as geometry,
     io as io,
     metrology as metrology,
