@@ -81,7 +81,8 @@ def register(subparsers) -> None:
         metavar="PATH",
         default=None,
         help="parameters held fixed, e.g. camera.dx camera.dy camera.f; REPLACES the "
-        "defaults (pixel pitch, f and a tilt gauge; the summary lists them)",
+        "defaults (pixel pitch, f and a tilt gauge; the summary lists them); with --model "
+        "opencv the terms outside --opencv-flags stay fixed as well",
     )
     p.add_argument(
         "--sigma-corner-px",

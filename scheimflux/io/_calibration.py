@@ -387,9 +387,7 @@ def _check_keys(d: dict, allowed, where: str) -> None:
         at = f"{where}.{key}" if where else str(key)
         close = difflib.get_close_matches(str(key), list(allowed), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise CalibrationFileError(
-            f"unknown key {at}{hint}; allowed here: {', '.join(allowed)}"
-        )
+        raise CalibrationFileError(f"unknown key {at}{hint}; allowed here: {', '.join(allowed)}")
 
 
 def _require(d, key: str, where: str):
