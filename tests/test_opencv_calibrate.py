@@ -77,6 +77,8 @@ def test_model_and_flag_mismatches_are_refused():
     obs = _obs()
     with pytest.raises(ValueError, match="opencv_flags apply to model='opencv'"):
         calibrate_camera(obs, model="pinhole", opencv_flags="tilted")
+    with pytest.raises(ValueError, match="the OpenCV model starts closed-form"):
+        calibrate_camera(obs, model="opencv", init="nominal")
     with pytest.raises(ValueError, match="OpenCV model has OpenCV's distortion"):
         calibrate(obs, model="opencv", distortion="radial-tangential")
 
@@ -253,19 +255,34 @@ def test_ray_traced_corners_equal_cv2_calibrate_camera(untilted, flags):
 @pytest.mark.slow
 def test_joint_opencv_model_with_plane_and_stage_and_its_file(untilted, tmp_path):
     obs, truth = untilted
-    cal = calibrate(obs, model="opencv", opencv_flags="tilted")
+    cal = calibrate(obs, model="opencv")
     assert all(f.converged for f in cal.fits.values())
     assert set(cal.fits) == {"camera", "stage", "joint"}
-    # the laser plane: the truth's normal within 0.05° (boards ±0.3 mm about the plane)
-    n, n_true = np.asarray(cal.plane.normal), truth.laser_plane / np.linalg.norm(truth.laser_plane)
-    assert np.degrees(np.arccos(min(1.0, abs(n @ n_true)))) < 0.05
+    # Lengths measured with the calibrated camera and laser plane against the ray-traced
+    # truth (distances: free of the camera frame, which differs between the OpenCV model
+    # and the simulator's lens frame). At |β| = 0.5 one pixel is ≈ 9 µm on the plane;
+    # 0.05 px stripe noise averaged over ~5000 points and the model's misfit of the real
+    # lens (reprojection 0.034 px for 0.03 px noise) bound it by ~1 µm; measured 0.14 µm.
+    px = np.concatenate([np.asarray(p) for p in truth.stripe_px])
+    Xt = np.concatenate([np.asarray(p) for p in truth.stripe_c])
+    X = np.asarray(sf.stripe_to_camera(cal.camera, cal.plane, px).points)
+    idx = np.random.default_rng(0).choice(len(X), 200, replace=False)
+    dt = np.linalg.norm(Xt[idx, None] - Xt[None, idx], axis=-1)
+    dc = np.linalg.norm(X[idx, None] - X[None, idx], axis=-1)
+    err_um = float(np.sqrt(np.mean((dt - dc) ** 2)) * 1e3)
+    print(f"length error {err_um:.3f} µm RMS")
+    assert err_um < 1.0
     path = tmp_path / "cal.json"
     write_calibration(path, cal)
     assert json.loads(path.read_text())["model"] == "opencv"
     loaded = read_calibration(path, observations=obs)
     a, b = diagnostics(cal), diagnostics(loaded)
     assert a.labels == b.labels
-    np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-8, atol=1e-300)
+    # entries compared on the scale of their variances, √(Σii Σjj): R_m_c goes through the
+    # file as a matrix, so the stage's rotation vector comes back to ~1e-16, which moves the
+    # covariance of the gauge-fixed stage components (~1e-21) by as much as themselves
+    scale = np.sqrt(np.outer(np.diag(a.covariance), np.diag(a.covariance)))
+    assert np.all(np.abs(b.covariance - a.covariance) <= 1e-8 * scale)
     uv = np.concatenate([v.stripe_px for v in obs.views])[:50]
     pa = point_uncertainty(cal, uv)
     pb = point_uncertainty(loaded, uv)

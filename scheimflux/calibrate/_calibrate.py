@@ -210,6 +210,8 @@ def calibrate_camera(
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if model != "opencv" and opencv_flags:
         raise ValueError(f"opencv_flags apply to model='opencv', not {model!r}")
+    if model == "opencv" and init == "nominal":
+        raise ValueError("init='nominal' is the thick lens's; the OpenCV model starts closed-form")
     opencv_flags = parse_opencv_flags(opencv_flags)
     _check_observations(obs)
     if model == "thick-lens":

@@ -88,7 +88,8 @@ def register(subparsers) -> None:
         default=None,
         help="parameters held fixed, e.g. camera.dx camera.dy camera.f, stage.R_m_c, "
         "stage.t_m_c, eccentricity; REPLACES the defaults (pixel pitch, f and a tilt "
-        "gauge; the summary lists them)",
+        "gauge; the summary lists them); with --model opencv the terms outside "
+        "--opencv-flags stay fixed as well",
     )
     p.add_argument(
         "--sigma-corner-px",

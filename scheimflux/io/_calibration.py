@@ -52,7 +52,6 @@ file whose solves did not converge (`"converged": false`) is read with an
 
 from __future__ import annotations
 
-import difflib
 import importlib.metadata
 import math
 import os
@@ -62,102 +61,33 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
-from ..camera._opencv import OpenCVCamera
-from ..camera._pinhole import Pinhole
-from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
-from ._files import load_json, write_json
-
-FORMAT = "scheimflux.calibration/1"
-
-# (name, unit) in file order; angles are stored in degrees.
-CAMERA_PARAMETERS = {
-    "thick-lens": (
-        ("f", "mm"),
-        ("e", "mm"),
-        ("z0", "mm"),
-        ("phi", "deg"),
-        ("theta", "deg"),
-        ("x0", "px"),
-        ("y0", "px"),
-        ("dx", "mm"),
-        ("dy", "mm"),
-    ),
-    "pinhole": (("alpha", "px"), ("beta", "px"), ("gamma", "px"), ("x0", "px"), ("y0", "px")),
-    "opencv": (
-        ("fx", "px"),
-        ("fy", "px"),
-        ("cx", "px"),
-        ("cy", "px"),
-        ("tau_x", "deg"),
-        ("tau_y", "deg"),
-    ),
-}
-_CAMERA_CLASSES = {"thick-lens": ThickLensScheimpflug, "pinhole": Pinhole, "opencv": OpenCVCamera}
-DISTORTION_PARAMETERS = {
-    "none": (),
-    "radial-tangential": ("k1", "k2", "k3", "p1", "p2"),
-    "division": ("kappa",),
-    "opencv": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
-}
-_DISTORTION_CLASSES = {
-    "none": NoDistortion,
-    "radial-tangential": RadialTangential,
-    "division": Division,
-    "opencv": OpenCVDistortion,
-}
-# the distortion models each camera model may hold
-_MODEL_DISTORTIONS = {
-    "thick-lens": ("none", "radial-tangential", "division"),
-    "pinhole": ("none",),
-    "opencv": ("opencv",),
-}
-# Parameters that must be positive (name: why), and angles that must lie within ±90°.
-_POSITIVE = {
-    "f": "the focal length",
-    "z0": "the sensor lies behind the lens",
-    "dx": "pixel pitch",
-    "dy": "pixel pitch",
-    "alpha": "a focal length in px",
-    "beta": "a focal length in px",
-    "fx": "a focal length in px",
-    "fy": "a focal length in px",
-}
-_ANGLES = ("phi", "theta", "tau_x", "tau_y")
-# |RᵀR − I| and |det R − 1| allowed for a rotation read from a file.
-ROTATION_TOLERANCE = 1e-9
-# A laser plane this close to the projection centre (mm) cannot triangulate: every pixel's
-# ray meets it next to the centre, so all points collapse onto one spot.
-MIN_PLANE_DISTANCE_MM = 0.1
-
-_TOP_KEYS = (
-    "format",
-    "model",
-    "sensor",
-    "camera",
-    "laser_plane",
-    "stage",
-    "board_poses",
-    "diagnostics",
-    "software",
+from ._calibration_schema import (
+    _CAMERA_CLASSES,
+    _DISTORTION_CLASSES,
+    _MODEL_DISTORTIONS,
+    _SOFTWARE_KEYS,
+    _TOP_KEYS,
+    CAMERA_PARAMETERS as CAMERA_PARAMETERS,
+    DISTORTION_PARAMETERS as DISTORTION_PARAMETERS,
+    FORMAT as FORMAT,
+    MIN_PLANE_DISTANCE_MM as MIN_PLANE_DISTANCE_MM,
+    ROTATION_TOLERANCE as ROTATION_TOLERANCE,
+    CalibrationFileError as CalibrationFileError,
+    UnconvergedCalibrationWarning as UnconvergedCalibrationWarning,
+    _camera,
+    _check_keys,
+    _diagnostics,
+    _floats,
+    _plane,
+    _poses,
+    _require,
+    _sensor,
+    _stage,
 )
-_SENSOR_KEYS = ("width", "height")
-_PARAMETER_KEYS = ("value", "unit")
-_PLANE_KEYS = ("n_per_mm", "unit_normal", "distance_mm")
-_STAGE_KEYS = ("R_m_c", "t_m_c_mm", "delta_omega_deg", "gauge_eccentricity_mm")
-_POSES_KEYS = ("rotvec", "translation_mm")
-_SOFTWARE_KEYS = ("name", "version")
-
-
-class CalibrationFileError(ValueError):
-    """A malformed calibration file; the message names the problem."""
-
-
-class UnconvergedCalibrationWarning(UserWarning):
-    """A calibration file records a solve that did not converge."""
+from ._files import load_json, write_json
 
 
 def __getattr__(name):
@@ -228,11 +158,6 @@ def camera_to_dict(camera) -> dict:
             dist[p] = _value(getattr(camera.distortion, p), "1")
     doc["distortion"] = dist
     return doc
-
-
-def _floats(a) -> list:
-    a = np.asarray(a, dtype=np.float64)
-    return [float(x) for x in a] if a.ndim == 1 else [_floats(r) for r in a]
 
 
 def plane_to_dict(plane: LaserPlane) -> dict:
@@ -368,201 +293,6 @@ def write_calibration(
     doc = calibration_to_dict(cal, diagnostics=diagnostics)
     parse_calibration(doc)  # refuse to write what we could not read
     write_json(path, doc, overwrite=overwrite)
-
-
-# ----------------------------------------------------------------------------- reading
-
-
-def _object(d, where: str) -> dict:
-    if not isinstance(d, dict):
-        raise CalibrationFileError(f"{where or 'the document'} must be a JSON object")
-    return d
-
-
-def _check_keys(d: dict, allowed, where: str) -> None:
-    """Refuse keys not in `allowed`, suggesting the closest valid one."""
-    for key in d:
-        if key in allowed:
-            continue
-        at = f"{where}.{key}" if where else str(key)
-        close = difflib.get_close_matches(str(key), list(allowed), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise CalibrationFileError(
-            f"unknown key {at}{hint}; allowed here: {', '.join(allowed)}"
-        )
-
-
-def _require(d, key: str, where: str):
-    _object(d, where)
-    if key not in d:
-        raise CalibrationFileError(f"missing key {where + '.' if where else ''}{key}")
-    return d[key]
-
-
-def _number(v, where: str) -> float:
-    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-        raise CalibrationFileError(f"{where} must be a finite number, got {v!r}")
-    return float(v)
-
-
-def _vector(v, n: int, where: str) -> np.ndarray:
-    if not isinstance(v, list) or len(v) != n:
-        raise CalibrationFileError(f"{where} must be a list of {n} numbers, got {v!r}")
-    return np.array([_number(x, f"{where}[{i}]") for i, x in enumerate(v)], dtype=np.float64)
-
-
-def _matrix3(v, where: str) -> np.ndarray:
-    if not isinstance(v, list) or len(v) != 3:
-        raise CalibrationFileError(f"{where} must be a 3x3 list of lists")
-    return np.stack([_vector(r, 3, f"{where}[{i}]") for i, r in enumerate(v)])
-
-
-def _parameter(d, name: str, unit: str, where: str) -> float:
-    entry = _require(d, name, where)
-    at = f"{where}.{name}"
-    if not isinstance(entry, dict):
-        raise CalibrationFileError(
-            f'{at} must be {{"value": number, "unit": "{unit}"}}, got {entry!r}'
-        )
-    _check_keys(entry, _PARAMETER_KEYS, at)
-    value = _number(_require(entry, "value", at), f"{at}.value")
-    got = _require(entry, "unit", at)
-    if got != unit:
-        raise CalibrationFileError(f"{at}.unit must be {unit!r}, got {got!r}")
-    if name in _POSITIVE and value <= 0:
-        raise CalibrationFileError(
-            f"{at}.value must be positive ({_POSITIVE[name]}), got {value!r} {unit}"
-        )
-    if unit == "deg" and name in _ANGLES and not abs(value) < 90.0:
-        raise CalibrationFileError(f"{at}.value must lie within ±90°, got {value!r}°")
-    return math.radians(value) if unit == "deg" else value
-
-
-def _camera(doc: dict, model: str):
-    cd = _object(_require(doc, "camera", ""), "camera")
-    names = tuple(n for n, _ in CAMERA_PARAMETERS[model])
-    _check_keys(cd, names + ("distortion",), "camera")
-    values = {n: _parameter(cd, n, u, "camera") for n, u in CAMERA_PARAMETERS[model]}
-    dd = _object(_require(cd, "distortion", "camera"), "camera.distortion")
-    dname = _require(dd, "model", "camera.distortion")
-    allowed = _MODEL_DISTORTIONS[model]
-    if dname not in allowed:
-        raise CalibrationFileError(
-            f"camera.distortion.model of the {model} model must be one of {list(allowed)}, "
-            f"got {dname!r}"
-        )
-    _check_keys(dd, ("model",) + DISTORTION_PARAMETERS[dname], "camera.distortion")
-    coeffs = [_parameter(dd, p, "1", "camera.distortion") for p in DISTORTION_PARAMETERS[dname]]
-    if model == "pinhole":
-        return Pinhole(**values), dname
-    dist = _DISTORTION_CLASSES[dname](*coeffs)
-    return _CAMERA_CLASSES[model](**values, distortion=dist), dname
-
-
-def _plane(doc: dict) -> LaserPlane | None:
-    pd = doc.get("laser_plane")
-    if pd is None:
-        return None  # a camera-only calibration
-    pd = _object(pd, "laser_plane")
-    _check_keys(pd, _PLANE_KEYS, "laser_plane")
-    n = _vector(_require(pd, "n_per_mm", "laser_plane"), 3, "laser_plane.n_per_mm")
-    norm = float(np.linalg.norm(n))
-    if norm == 0:
-        raise CalibrationFileError("laser_plane.n_per_mm must not be zero")
-    if not 1.0 / norm >= MIN_PLANE_DISTANCE_MM:
-        raise CalibrationFileError(
-            f"laser_plane.n_per_mm is degenerate: the plane passes {1e3 / norm:.3g} µm from "
-            f"the projection centre (at least {MIN_PLANE_DISTANCE_MM} mm needed to "
-            "triangulate)"
-        )
-    if "unit_normal" in pd:
-        u = _vector(pd["unit_normal"], 3, "laser_plane.unit_normal")
-        if np.max(np.abs(u - n / norm)) > 1e-9:
-            raise CalibrationFileError(
-                "laser_plane.unit_normal disagrees with n_per_mm (n_per_mm / |n_per_mm| = "
-                f"{_floats(n / norm)})"
-            )
-    if "distance_mm" in pd:
-        d = _number(pd["distance_mm"], "laser_plane.distance_mm")
-        if abs(d * norm - 1.0) > 1e-9:
-            raise CalibrationFileError(
-                f"laser_plane.distance_mm = {d} disagrees with n_per_mm (1 / |n_per_mm| = "
-                f"{1.0 / norm})"
-            )
-    return LaserPlane(n)
-
-
-def _stage(doc: dict) -> tuple[RotaryStage | None, np.ndarray | None]:
-    sd = doc.get("stage")
-    if sd is None:
-        return None, None
-    if not isinstance(sd, dict):
-        raise CalibrationFileError("stage must be a JSON object (or absent)")
-    _check_keys(sd, _STAGE_KEYS, "stage")
-    R = _matrix3(_require(sd, "R_m_c", "stage"), "stage.R_m_c")
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    det = float(np.linalg.det(R))
-    if err > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise CalibrationFileError(
-            f"stage.R_m_c is not a rotation matrix (max |R^T R - I| = {err:.3g}, det = {det:.9g})"
-        )
-    t = _vector(_require(sd, "t_m_c_mm", "stage"), 3, "stage.t_m_c_mm")
-    dw_deg = _number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg")
-    if not 0 < abs(dw_deg) < 360:
-        raise CalibrationFileError(
-            f"stage.delta_omega_deg must be non-zero and within ±360°, got {dw_deg!r}"
-        )
-    ecc = None
-    if sd.get("gauge_eccentricity_mm") is not None:
-        ecc = _vector(sd["gauge_eccentricity_mm"], 2, "stage.gauge_eccentricity_mm")
-    return RotaryStage(pose=Pose.from_matrix(R, t), delta_omega=math.radians(dw_deg)), ecc
-
-
-def _sensor(doc: dict) -> tuple[int, int] | None:
-    sd = doc.get("sensor")
-    if sd is None:
-        return None
-    sd = _object(sd, "sensor")
-    _check_keys(sd, _SENSOR_KEYS, "sensor")
-    out = []
-    for key in _SENSOR_KEYS:
-        v = _require(sd, key, "sensor")
-        if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
-            raise CalibrationFileError(f"sensor.{key} must be a positive integer, got {v!r}")
-        out.append(int(v))
-    return out[0], out[1]
-
-
-def _rows(v, where: str) -> np.ndarray:
-    if not isinstance(v, list):
-        raise CalibrationFileError(f"{where} must be a list of [x, y, z]")
-    return np.stack([_vector(r, 3, f"{where}[{i}]") for i, r in enumerate(v)] or [np.zeros(3)])[
-        : len(v)
-    ]
-
-
-def _poses(doc: dict) -> Pose:
-    pd = doc.get("board_poses")
-    if pd is None:
-        return Pose(np.zeros((0, 3)), np.zeros((0, 3)))
-    pd = _object(pd, "board_poses")
-    _check_keys(pd, _POSES_KEYS, "board_poses")
-    rv = _rows(_require(pd, "rotvec", "board_poses"), "board_poses.rotvec")
-    t = _rows(_require(pd, "translation_mm", "board_poses"), "board_poses.translation_mm")
-    if len(rv) != len(t):
-        raise CalibrationFileError(
-            f"board_poses.rotvec has {len(rv)} rows but board_poses.translation_mm {len(t)}"
-        )
-    return Pose(rv, t)
-
-
-def _diagnostics(doc: dict) -> dict:
-    diagnostics = doc.get("diagnostics", {})
-    if diagnostics is None:
-        return {}
-    if not isinstance(diagnostics, dict):
-        raise CalibrationFileError("diagnostics must be a JSON object")
-    return diagnostics
 
 
 def parse_calibration(doc, *, observations=None, source: str = "the calibration"):
