@@ -593,7 +593,8 @@ def _straight_line_ms(sec: _Sections) -> float:
     outer = np.add.reduceat(P[:, :, None] * P[:, None, :], sec.starts, axis=0)
     cov = outer / cnt[:, None, None] - m[:, :, None] * m[:, None, :]
     ev = np.linalg.eigvalsh(cov)  # ascending: off the plane, across the line, along it
-    return float(np.sum(cnt * (ev[:, 0] + ev[:, 1])) / len(P))
+    # eigenvalues of an exactly straight stripe round to ±1e-20: never below 0
+    return max(float(np.sum(cnt * (ev[:, 0] + ev[:, 1])) / len(P)), 0.0)
 
 
 def _usable_gauge_points(X, frame, radius, min_points=5):
@@ -690,8 +691,9 @@ def initial_stage(camera, plane: LaserPlane, obs: Observations) -> StageInit:
     if d @ sec.normal < math.sin(min_elevation) or line_ms < 100.0 * score:
         raise ValueError(
             "the gauge scan does not determine the table axis: the stripe is straight "
-            f"(RMS {1e3 * math.sqrt(line_ms):.3g} µm from a straight line per frame, "
-            f"{1e3 * math.sqrt(score):.3g} µm from the fitted cylinder; the best axis "
+            f"(RMS {1e3 * math.sqrt(max(line_ms, 0.0)):.3g} µm from a straight line per "
+            f"frame, {1e3 * math.sqrt(max(score, 0.0)):.3g} µm from the fitted cylinder; "
+            "the best axis "
             f"lies {math.degrees(math.asin(min(1.0, abs(d @ sec.normal)))):.3g}° out of "
             "the laser plane). Tilt the table axis out of the laser plane."
         )
