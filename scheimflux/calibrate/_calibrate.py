@@ -650,7 +650,8 @@ def _straight_line_ms(sec: _Sections) -> float:
     outer = np.add.reduceat(P[:, :, None] * P[:, None, :], sec.starts, axis=0)
     cov = outer / cnt[:, None, None] - m[:, :, None] * m[:, None, :]
     ev = np.linalg.eigvalsh(cov)  # ascending: off the plane, across the line, along it
-    return float(np.sum(cnt * (ev[:, 0] + ev[:, 1])) / len(P))
+    # eigenvalues of an exactly straight stripe round to ±1e-20: never below 0
+    return max(float(np.sum(cnt * (ev[:, 0] + ev[:, 1])) / len(P)), 0.0)
 
 
 def _usable_gauge_points(X, frame, radius, min_points=5):
@@ -747,8 +748,9 @@ def initial_stage(camera, plane: LaserPlane, obs: Observations) -> StageInit:
     if d @ sec.normal < math.sin(min_elevation) or line_ms < 100.0 * score:
         raise ValueError(
             "the gauge scan does not determine the table axis: the stripe is straight "
-            f"(RMS {1e3 * math.sqrt(line_ms):.3g} µm from a straight line per frame, "
-            f"{1e3 * math.sqrt(score):.3g} µm from the fitted cylinder; the best axis "
+            f"(RMS {1e3 * math.sqrt(max(line_ms, 0.0)):.3g} µm from a straight line per "
+            f"frame, {1e3 * math.sqrt(max(score, 0.0)):.3g} µm from the fitted cylinder; "
+            "the best axis "
             f"lies {math.degrees(math.asin(min(1.0, abs(d @ sec.normal)))):.3g}° out of "
             "the laser plane). Tilt the table axis out of the laser plane."
         )
@@ -897,8 +899,9 @@ def calibrate(
     scan) give a camera-only calibration (`plane = None`, only the camera solve).
 
     Observations are screened (pixels outside the sensor are left out); after the joint
-    solve a rejection pass leaves out what lies beyond `reject` robust σ and solves once
-    more (None: no pass). `robust` (e.g. 3) adds a Huber loss at that many σ to every
+    solve a rejection pass leaves out what lies beyond `reject` robust σ and solves again,
+    until what is left out stops changing (at most `MAX_REJECTION_PASSES`; None: no
+    pass). `robust` (e.g. 3) adds a Huber loss at that many σ to every
     solve; it is off by default because Levenberg–Marquardt with Huber's kink stalls
     (measured on a 4-view ray-traced scene: 300 steps, not converged, against 8 steps
     converged without it), while the rejection pass leaves out the same outliers.
@@ -966,30 +969,25 @@ def calibrate(
         fits["joint"] = fit
     outliers = {"threshold_sigma": reject}
     if reject is not None:
-        masks = _outliers(params, data, reject)
-        outliers.update(
-            corner_outliers=int(masks[0].sum()),
-            stripe_outliers=int(masks[1].sum()),
-            gauge_outliers=int(masks[2].sum()),
+        fit, applied, passes = _rejection_passes(
+            fn if joint else None,
+            start,
+            params,
+            data,
+            freeze + (extra if joint else ()),
+            reject,
+            max_steps,
+            throw,
         )
-        if joint and any(int(m.sum()) for m in masks):
-            # the final rejection pass: same shapes (weights 0), so the compiled solver
-            # is reused. The joint problem is solved again from the same start (the
-            # separate steps) without the outliers: from the contaminated optimum LM
-            # crept along the weak depth valley for 300 steps without converging.
-            data = eqx.tree_at(
-                lambda d: (d.corner_w, d.stripe_w, d.gauge_w),
-                data,
-                tuple(
-                    jnp.where(jnp.asarray(m), 0.0, w)
-                    for m, w in zip(masks, (data.corner_w, data.stripe_w, data.gauge_w))
-                ),
-            )
-            fit = least_squares(
-                fn, start, data, freeze=freeze + extra, max_steps=max_steps, throw=throw
-            )
-            params = fit.params
+        if fit is not None:
+            params, data = fit.params, _without(data, applied)
             fits["joint"] = fit
+        outliers.update(
+            corner_outliers=int(applied[0].sum()),
+            stripe_outliers=int(applied[1].sum()),
+            gauge_outliers=int(applied[2].sum()),
+            rejection_passes=passes,
+        )
     cal = Calibration(
         params=params,
         model=model,
@@ -1028,6 +1026,52 @@ def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:
             f"cannot freeze {', '.join(paths)}: the observations hold no rotary-stage scan"
         )
     return paths
+
+
+# At most this many rejection passes (re-solves) after the joint solve.
+MAX_REJECTION_PASSES = 3
+
+
+def _without(data: CalibrationData, masks) -> CalibrationData:
+    """`data` with the observations under `masks` (True: left out) at weight 0."""
+    return eqx.tree_at(
+        lambda d: (d.corner_w, d.stripe_w, d.gauge_w),
+        data,
+        tuple(
+            jnp.where(jnp.asarray(m), 0.0, w)
+            for m, w in zip(masks, (data.corner_w, data.stripe_w, data.gauge_w))
+        ),
+    )
+
+
+def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw):
+    """The rejection pass: leave out what lies beyond `reject` robust σ, solve again.
+
+    A few gross outliers pull a least-squares solution so far that good neighbours (the
+    other corners of their view) look like outliers too. So the masks are recomputed from
+    every observation at each new solution, and the joint problem is re-solved (from the
+    separate steps' `start`: from the contaminated optimum LM crept along the weak
+    depth valley without converging) until the masks stop changing, at most
+    `MAX_REJECTION_PASSES` times. Same shapes (weights 0): the compiled solver is reused.
+    With `fn` None (no joint solve) the outliers are only counted.
+
+    **Returns:** `(fit or None, masks applied, number of passes)`.
+    """
+    masks = _outliers(params, data, reject)
+    fit, applied, passes = None, tuple(np.zeros_like(m) for m in masks), 0
+    if fn is not None:
+        while passes < MAX_REJECTION_PASSES:
+            same = all(np.array_equal(a, m) for a, m in zip(applied, masks))
+            if same:
+                break
+            fit = least_squares(
+                fn, start, _without(data, masks), freeze=freeze, max_steps=max_steps, throw=throw
+            )
+            applied, passes = masks, passes + 1
+            masks = _outliers(fit.params, data, reject)
+    else:
+        applied = masks
+    return fit, applied, passes
 
 
 # ----------------------------------------------------------------------------- quality

@@ -5,7 +5,8 @@ solver already assembles ([`Fit`][]`.normal_matrix`: no extra compilation):
 
     Σ = s² (JᵀJ)⁺,   s² = |r|² / (n − p)
 
-on the column-scaled matrix. A reconstructed point's own σ is relative to the camera
+on the column-scaled matrix, with s² floored at 1 (see [`fit_diagnostics`][]). A
+reconstructed point's own σ is relative to the camera
 frame, whose placement (above all its depth along the optical axis, which e and z0
 share) the data determine poorly; but that placement moves every point alike and cancels
 in what users measure: distances, lengths, heights. [`length_uncertainty`][] propagates
@@ -45,6 +46,9 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     eigenvalue of the column-scaled `JᵀJ` is below `RANK_RTOL` × the largest is reported
     (with the `top` parameters in it) and left out of Σ.
 
+    The covariance is `max(1, s²) (JᵀJ)⁺`: the stated noise σ, scaled up where the
+    residuals show more (s² > 1), never down (`variance_factor` reports s² itself).
+
     **Returns:** a [`Diagnostics`][] (`covariance` in physical units; `singular_values`
     are the square roots of the scaled eigenvalues).
     """
@@ -62,7 +66,12 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     n, p = int(fit.n_observations), len(labels)
     s2 = 2.0 * fit.cost / (n - p) if n > p else math.nan
-    cov = s2 * (d[:, None] * ((V * inv) @ V.T) * d[None, :])
+    # Σ = max(1, s²) (JᵀJ)⁺: the stated σ unless the residuals show more noise. s² < 1
+    # says only that some block's σ was stated too large, not that every parameter is
+    # better determined: on ray-traced data the board-stripe residuals (distance from
+    # the board) scatter 4× less than the stated in-plane stripe σ, s² = 0.17, and Σ
+    # scaled by it understated the spread of re-solved lengths 2.2× (Monte Carlo).
+    cov = max(1.0, s2) * (d[:, None] * ((V * inv) @ V.T) * d[None, :])
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = np.where(np.outer(std, std) > 0, cov / np.outer(std, std), 0.0)
