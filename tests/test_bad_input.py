@@ -72,6 +72,27 @@ def test_reconstruct_output_folder_missing_is_found_first(tmp_path, capsys):
     assert "output folder does not exist" in _one_line(err)
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ("extract", "{frames}", "--out", "{out}"),
+        ("detect", "{frames}", "--board", "11x8", "--square-mm", "0.3", "--out", "{out}"),
+    ],
+)
+def test_detect_and_extract_output_folder_missing_is_found_first(tmp_path, capsys, argv):
+    # before any image is read: the one frame here would otherwise be processed first
+    import cv2
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "view_0.png"), np.zeros((40, 50), np.uint8))
+    out = tmp_path / "no" / "out.json"
+    argv = [a.format(frames=frames, out=out) for a in argv]
+    code, _, err = _run(capsys, *argv)
+    assert code == 1
+    assert "output folder does not exist" in _one_line(err)
+
+
 def test_reconstruct_output_is_a_folder(tmp_path, capsys):
     (tmp_path / "pts.ply").mkdir()
     code, _, err = _run(

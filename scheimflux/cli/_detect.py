@@ -33,7 +33,7 @@ import argparse
 import glob
 import os
 
-from ._common import CLIError, refuse_to_clobber, require_positive, warn
+from ._common import CLIError, check_output, refuse_to_clobber, require_positive, warn
 
 
 def _report(message: str) -> None:
@@ -148,6 +148,7 @@ def _check_args(args) -> None:
     if not os.path.isdir(args.images_dir):
         raise CLIError(f"{args.images_dir} is not a folder")
     refuse_to_clobber(args.out, overwrite=args.overwrite)
+    check_output(args.out, overwrite=True)  # its folder takes a file: before the long part
     if args.preview is not None:
         if os.path.exists(args.preview) and not os.path.isdir(args.preview):
             raise CLIError(f"--preview {args.preview} exists and is not a folder")

@@ -21,7 +21,7 @@ import numpy as np
 from ..io._stripes import write_stripes
 from ..stripe._extract import extract_stripe
 from ..stripe._image import CHANNELS
-from ._common import CLIError, list_images, progress, refuse_to_clobber, warn
+from ._common import CLIError, check_output, list_images, progress, refuse_to_clobber, warn
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 
@@ -109,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if not pairs:
         raise CLIError(f"only laser-off images (*{args.laser_off}.*) in {args.frames_dir}")
     refuse_to_clobber(args.out, overwrite=args.overwrite)
+    check_output(args.out, overwrite=True)  # its folder takes a file: before the long part
     frames: list = []
     skipped: list[str] = []
     empty: list[str] = []
