@@ -90,7 +90,7 @@ def test_read_grey(tmp_path):
     [
         (["simulate", "--corner-noise-px", "-1"], "--corner-noise-px must be >= 0, got -1.0"),
         (["simulate", "--square-mm", "0"], "--square-mm must be positive, got 0.0"),
-        (["calibrate", "OBS.json", "--robust", "nan"], "--robust must be positive, got nan"),
+        (["calibrate", "OBS.json", "--robust", "nan"], "--robust must be >= 0, got nan"),
         (
             ["detect", "IM", "--board", "7x6", "--square-mm", "inf"],
             "--square-mm must be positive, got inf",

@@ -28,7 +28,9 @@ def _cylinder_points(rng, point, axis, r, n, arc=2 * math.pi, length=10.0, noise
 
 
 def _angle(u, v):
-    return math.acos(min(1.0, abs(float(np.dot(u, v)) / np.linalg.norm(u) / np.linalg.norm(v))))
+    # atan2(|u x v|, |u . v|): accurate near 0, where acos of a rounded cosine is only good
+    # to sqrt(machine epsilon) ~ 1.5e-8 rad
+    return math.atan2(float(np.linalg.norm(np.cross(u, v))), abs(float(np.dot(u, v))))
 
 
 def test_plane_exact_and_noisy():
