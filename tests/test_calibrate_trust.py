@@ -8,6 +8,7 @@ shared between the tests.
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -86,6 +87,24 @@ def test_outliers_and_off_sensor_pixels_are_left_out_and_counted(scene, clean):
     assert clean.quality.rejected["stripe_outliers"] == 0
 
 
+def test_left_out_observations_come_back_from_the_file(scene, tmp_path):
+    # The file records what the rejection pass left out; read back with the same
+    # observations, the residual arrays (screened, weighted, without the outliers) are
+    # those the calibration was solved on, so diagnostics agree.
+    from scheimflux.io import read_calibration, write_calibration
+
+    contaminated = _contaminated(scene[0])
+    cal = calibrate(contaminated, distortion="none")
+    assert sum(len(v) for v in cal.left_out.values()) == 3 + 5
+    path = tmp_path / "cal.json"
+    write_calibration(path, cal)
+    loaded = read_calibration(path, observations=contaminated)
+    for name in ("corner_w", "stripe_w", "gauge_w", "corners", "stripe"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded.data, name)), np.asarray(getattr(cal.data, name))
+        )
+
+
 def test_understated_noise_fails_the_reprojection_gate(scene):
     # the simulated corner noise is 0.03 px: stated as 0.005 px, the RMS is 6× the σ
     with pytest.raises(QualityError, match=r"reprojection RMS 0.03\d* px is 6.\d*× the stated"):
@@ -162,7 +181,9 @@ def test_rank_deficiency_is_named(scene):
     with pytest.raises(RankDeficientError, match="do not determine") as err:
         calibrate(obs, distortion="none", freeze=())
     msg = str(err.value)
-    assert "3 such direction(s)" in msg and "freeze one of them" in msg
+    # judged at the solution; at least the three gauge freedoms of DEFAULT_FREEZE
+    n_null = int(re.search(r"(\d+) such direction\(s\)", msg).group(1))
+    assert n_null >= 3 and "freeze one of them" in msg, msg
     named = {w for w in msg.replace(",", " ").split() if w.startswith("camera.")}
     assert len(named) >= 3, msg
 

@@ -837,6 +837,9 @@ class Calibration:
     data: CalibrationData
     sensor_size: tuple[int, int] = (0, 0)  # (width, height) px
     quality: Quality | None = None  # gates, rejected observations, warnings
+    # observations left out by the rejection pass: index arrays (view, corner),
+    # (view, stripe point), (frame, gauge point) into the screened observations
+    left_out: dict | None = None
 
     @property
     def camera_only(self) -> bool:
@@ -968,6 +971,7 @@ def calibrate(
         params = fit.params
         fits["joint"] = fit
     outliers = {"threshold_sigma": reject}
+    left_out = None  # set where the rejection pass re-solved without them
     if reject is not None:
         fit, applied, passes = _rejection_passes(
             fn if joint else None,
@@ -982,6 +986,7 @@ def calibrate(
         if fit is not None:
             params, data = fit.params, _without(data, applied)
             fits["joint"] = fit
+            left_out = _left_out_indices(applied)
         outliers.update(
             corner_outliers=int(applied[0].sum()),
             stripe_outliers=int(applied[1].sum()),
@@ -1001,8 +1006,31 @@ def calibrate(
         gauge_rms_mm=None if stage is None else _gauge_rms(params, data),
         data=data,
         sensor_size=(int(obs.width), int(obs.height)),
+        left_out=left_out,
     )
     return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw)
+
+
+LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge")
+
+
+def _left_out_indices(masks) -> dict:
+    """The rejection masks as `{block: (n, 2) int array}` (row, index) per block."""
+    return {k: np.argwhere(np.asarray(m)) for k, m in zip(LEFT_OUT_BLOCKS, masks)}
+
+
+def apply_left_out(data: CalibrationData, left_out: dict) -> CalibrationData:
+    """`data` with the observations of `left_out` (see `Calibration.left_out`) at weight
+    0; `ValueError` when an index does not fit the data."""
+    masks = []
+    for k, w in zip(LEFT_OUT_BLOCKS, (data.corner_w, data.stripe_w, data.gauge_w)):
+        m = np.zeros(w.shape, bool)
+        idx = np.asarray(left_out.get(k, ()), dtype=int).reshape(-1, 2)
+        if len(idx) and (np.any(idx < 0) or np.any(idx >= np.array(w.shape))):
+            raise ValueError(f"left-out {k} index out of range for these observations")
+        m[idx[:, 0], idx[:, 1]] = True
+        masks.append(m)
+    return _without(data, masks)
 
 
 def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:

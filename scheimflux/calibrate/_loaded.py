@@ -23,7 +23,8 @@ import numpy as np
 
 from ..geometry._transforms import Pose
 from ..io._calibration import CalibrationFileError
-from ._calibrate import Calibration
+from ._calibrate import Calibration, apply_left_out
+from ._gates import screen_observations
 from ._model import (
     CalibrationData,
     SystemParams,
@@ -173,12 +174,20 @@ def restore_calibration(
         _check_observations(observations, n_poses, sensor_size, source)
         robust = diag.get("robust")
         robust = float(robust) if isinstance(robust, (int, float)) else None
+        # as `calibrate` did: off-sensor pixels screened out, then the residual arrays
+        # with the file's weights and the rejection pass's left-out observations
+        observations, _ = screen_observations(observations)
         data = make_data(
             observations,
             sigma_corner_px=float(diag.get("sigma_corner_px", 0.03)),
             sigma_stripe_mm=_sigma_stripe_mm(diag, params, observations),
             robust=robust,
         )
+        if isinstance(diag.get("left_out"), dict):
+            try:
+                data = apply_left_out(data, diag["left_out"])
+            except (ValueError, TypeError) as err:
+                raise CalibrationFileError(f"diagnostics.left_out: {err}") from None
     else:
         data = MissingObservations(source)
     fits = {}

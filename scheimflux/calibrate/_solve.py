@@ -59,8 +59,17 @@ def null_directions(H, labels, *, rtol: float = RANK_RTOL, top: int = 5):
     return out
 
 
+def _only_distortion(components) -> bool:
+    return all(".distortion." in lab for lab, _ in components)
+
+
 def _check_rank(H, params, spec) -> None:
-    nulls = null_directions(H, parameter_labels(params, spec))
+    # A null direction within the distortion coefficients alone (e.g. OpenCV's rational
+    # k1..k6 on a mildly distorting lens: numerator and denominator trade off) leaves the
+    # projection and every other parameter determined; `fit_diagnostics` reports it.
+    # Any other null direction is refused.
+    nulls = [n for n in null_directions(H, parameter_labels(params, spec))
+             if not _only_distortion(n[1])]  # fmt: skip
     if nulls:
         lam, comps = nulls[0]
         names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
@@ -365,7 +374,7 @@ def least_squares(
       weakest directions (which would otherwise keep LM stepping on rounding noise).
     - `throw`: raise `NotConvergedError` when LM fails (the error carries the `Fit`).
     - `check_rank`: raise `RankDeficientError`, naming the parameters, when the free
-      parameters are not determined together at the start (see [`null_directions`][]).
+      parameters are not determined together at the solution (see [`null_directions`][]).
 
     **Returns:** a `Fit`.
     """
@@ -383,8 +392,6 @@ def least_squares(
         raise ValueError(f"{bad} residuals are not finite at the initial parameters")
     if not np.allclose(H @ z, JtJz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(JtJz)))):
         raise RuntimeError("internal error: the block normal matrix does not match JᵀJ")
-    if check_rank:
-        _check_rank(np.asarray(H), params, spec)
     col = jnp.sqrt(jnp.diag(H))
     scale = jnp.where(col > 0, 1.0 / jnp.where(col > 0, col, 1.0), 1.0)
     args = (fn, unravel, static, data, x0, scale)
@@ -402,6 +409,12 @@ def least_squares(
     # JᵀJ at the solution, for the parameters' covariance (same compiled program)
     _, H_end, _ = _normal_at(x0 + y * scale, args0, structure, z)
     H_end = np.asarray(H_end)
+    if check_rank:
+        # judged at the solution: a degeneracy only at the start (a sensor tilt or the
+        # rational terms at exactly zero, where their derivatives are those of the
+        # principal point and of k1) is not one of the data; at the start only if the
+        # solve broke down
+        _check_rank(H_end if np.all(np.isfinite(H_end)) else np.asarray(H), params, spec)
     r.block_until_ready()
     elapsed = time.perf_counter() - t0
     ok = sol.result == optx.RESULTS.successful and bool(jnp.all(jnp.isfinite(r)))

@@ -221,11 +221,15 @@ def _weights(cal) -> dict:
     data = getattr(cal, "data", None)
     if not isinstance(data, CalibrationData):
         return {}
-    return {
+    out = {
         "sigma_corner_px": float(data.sigma_corner_px),
         "sigma_stripe_mm": float(data.sigma_stripe_mm),
         "robust": data.robust,
     }
+    left_out = getattr(cal, "left_out", None)
+    if left_out is not None:  # the rejection pass's choice, re-applied on reading
+        out["left_out"] = {k: np.asarray(v, dtype=int).tolist() for k, v in left_out.items()}
+    return out
 
 
 def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
