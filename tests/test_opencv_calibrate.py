@@ -246,6 +246,17 @@ def test_ray_traced_corners_equal_cv2_calibrate_camera(untilted, flags):
     # measured: |ΔK| ≤ 1e-3 px (both solvers stop within a small fraction of σ)
     np.testing.assert_allclose(K, K_cv, rtol=0, atol=0.01)
     n = len(dist_cv)
+    if "rational" in flags:
+        # On this mildly distorting lens k1..k6 share a null direction (numerator and
+        # denominator trade off), so the coefficients are not comparable one by one; the
+        # camera function is: both models' rays through the observed corners agree. Each
+        # fits ~1000 corners with 0.03 px noise and ~20 parameters, a standard error of the
+        # fitted function of ≈ 0.03·√(20/1000) ≈ 0.004 px; the bound allows 5×.
+        px = np.concatenate([v.corners_px[v.corner_mask] for v in obs.views]).reshape(-1, 1, 2)
+        a = cv2.undistortPoints(px, K, dist[:n]).reshape(-1, 2)
+        b = cv2.undistortPoints(px, K_cv, dist_cv).reshape(-1, 2)
+        assert float(np.max(np.abs(a - b)) * K_cv[0, 0]) < 0.02
+        return
     ours = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist[:n]])
     theirs = np.array([K_cv[0, 0], K_cv[1, 1], K_cv[0, 2], K_cv[1, 2], *dist_cv])
     free = std_cv[: 4 + n] > 0
