@@ -143,9 +143,9 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="today's extract_stripe takes circle edges for the laser line in grey single-image "
-    "captures (about half of the centres are off the line); the stripe rewrite's ridge test "
-    "and board mask address it",
+    reason="grey single-image circle-grid captures: the ridge-tested extractor no longer "
+    "puts centres on circle edges, but refuses the whole line on the board (no centres); "
+    "colour or laser-off pairs work",
 )
 def test_single_grey_stripe_on_board(cam, tmp_path):
     target = CircleGrid(7, 6, 0.2, 0.08)
