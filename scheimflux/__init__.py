@@ -13,7 +13,6 @@ if os.environ.get("SCHEIMFLUX_NO_X64", "") in ("", "0"):
     jax.config.update("jax_enable_x64", True)
 
 from . import (
-    calibrate as calibrate,
     camera as camera,
     capture as capture,
     export as export,
@@ -31,7 +30,19 @@ from ._presets import (
     paper_stage as paper_stage,
     paper_thick_lens as paper_thick_lens,
 )
-from .calibrate import Calibration as Calibration, diagnostics as diagnostics
+
+# `sf.calibrate` is the function (bound after the subpackage is imported, so it stays the
+# function whatever is imported later); the subpackage stays `scheimflux.calibrate` for
+# `from scheimflux.calibrate import X`. See docs/api.md.
+from .calibrate import (
+    Calibration as Calibration,
+    calibrate as calibrate,
+    calibrate_camera as calibrate_camera,
+    calibrate_stage as calibrate_stage,
+    cross_validate as cross_validate,
+    diagnostics as diagnostics,
+    fit_laser_plane as fit_laser_plane,
+)
 from .camera import (
     AbstractCamera as AbstractCamera,
     Pinhole as Pinhole,

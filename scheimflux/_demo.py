@@ -24,15 +24,6 @@ def _gauge_radius(points_m: np.ndarray, eccentricity) -> float:
     return float(np.mean(np.hypot(points_m[:, 0] - ecc[0], points_m[:, 1] - ecc[1])))
 
 
-def _aligned_errors(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Distances between corresponding points after the best rigid alignment (Kabsch)."""
-    ce, cr = est.mean(axis=0), ref.mean(axis=0)
-    U, _, Vt = np.linalg.svd((est - ce).T @ (ref - cr))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return np.linalg.norm((est - ce) @ R.T + cr - ref, axis=1)
-
-
 def run_demo(
     out: str,
     *,
@@ -54,7 +45,8 @@ def run_demo(
 
     **Returns:** the summary dict (also written to `out/summary.json`).
     """
-    from .calibrate._calibrate import calibrate
+    from .calibrate import calibrate
+    from .geometry._fitting import aligned_distances
     from .io._calibration import write_calibration
     from .io._files import write_json
     from .io._observations import write_observations
@@ -165,7 +157,7 @@ def run_demo(
         ok = np.all(np.isfinite(e_c), axis=1) & np.all(np.isfinite(t_c), axis=1)
         est.append(e_c[ok])
         ref.append(t_c[ok])
-    err = _aligned_errors(np.concatenate(est), np.concatenate(ref))
+    err = aligned_distances(np.concatenate(est), np.concatenate(ref))
     rms_um = float(np.sqrt(np.mean(err**2)) * 1e3)
     radius = _gauge_radius(points, p.eccentricity)
     total = time.perf_counter() - t_start

@@ -15,6 +15,7 @@ from scheimflux.calibrate import (
     camera_plane_residuals,
     refine,
 )
+from scheimflux.calibrate._init import nominal_thick_lens
 from scheimflux.io import Nominal, Observations, View
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
@@ -73,7 +74,7 @@ def test_joint_beats_sequential_on_the_laser_plane(traced, joint_cal):
 def test_frozen_parameters_stay_fixed(traced):
     _, obs, _ = traced
     cc = calibrate_camera(obs, distortion="none", init="nominal")
-    nominal = sf.calibrate._init.nominal_thick_lens(obs)
+    nominal = nominal_thick_lens(obs)
     for name in ("f", "dx", "dy", "phi", "theta"):
         assert float(getattr(cc.camera, name)) == float(getattr(nominal, name))
     assert float(cc.camera.e) != 0.0  # free, started at 0 as in the paper

@@ -13,11 +13,13 @@ import re
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate
-from scheimflux.calibrate._diagnostics import diagnostics
-from scheimflux.calibrate._gates import QualityError
-from scheimflux.calibrate._solve import RankDeficientError
-from scheimflux.calibrate._uncertainty import fit_diagnostics
+from scheimflux.calibrate import (
+    QualityError,
+    RankDeficientError,
+    calibrate,
+    diagnostics,
+    fit_diagnostics,
+)
 from scheimflux.cli._main import main
 from scheimflux.io import Nominal, View, write_observations
 from scheimflux.simulate import paper_rig, simulate_observations
@@ -194,7 +196,7 @@ def test_freeze_stage_parameters(tmp_path):
     obs, _ = simulate_observations(
         rig, Checkerboard(6, 5, 0.4), n_views=4, n_frames=6, delta_omega_deg=45.0, seed=1
     )
-    from scheimflux.calibrate._calibrate import DEFAULT_FREEZE
+    from scheimflux.calibrate import DEFAULT_FREEZE
 
     freeze = (*DEFAULT_FREEZE[("thick-lens", "nominal")], "stage.R_m_c")
     cal = calibrate(obs, distortion="none", freeze=freeze, throw=False)
@@ -209,8 +211,7 @@ def test_free_spec_accepts_stage_paths():
     import jax.numpy as jnp
 
     import scheimflux as sf
-    from scheimflux.calibrate._model import SystemParams
-    from scheimflux.calibrate._solve import free_spec
+    from scheimflux.calibrate import SystemParams, free_spec
     from scheimflux.geometry import LaserPlane, Pose, RotaryStage
 
     cam = sf.ThickLensScheimpflug(97.0, -2.4, 249.5, 0.05, 0.23, 796.2, 594.0, 0.0044, 0.0044)

@@ -5,6 +5,7 @@ command's plumbing: arguments, summary, files, errors. The `slow` tests run the 
 calibration on a small ray-traced data set.
 """
 
+import importlib
 import json
 import math
 from types import SimpleNamespace
@@ -14,13 +15,15 @@ import numpy as np
 import pytest
 from test_calibration_file import _fit, _thick_lens, make_calibration
 
-import scheimflux.calibrate._calibrate as calibrate_module
 from scheimflux.cli._main import main
 from scheimflux.io._calibration import read_calibration, write_calibration
 from scheimflux.io._observations import Observations, View, write_observations
 from scheimflux.io._pointcloud import read_ply
 from scheimflux.io._stripes import write_stripes
 from scheimflux.reconstruct import Status, stripe_to_camera, stripe_to_measurement
+
+# the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
+calibrate_module = importlib.import_module("scheimflux.calibrate")
 
 
 def _observations(stage=True) -> Observations:

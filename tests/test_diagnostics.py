@@ -8,9 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate, calibrate_camera
-from scheimflux.calibrate._compare import compare_with_opencv
-from scheimflux.calibrate._diagnostics import (
+from scheimflux.calibrate import (
+    calibrate,
+    calibrate_camera,
+    compare_with_opencv,
     cross_validate,
     diagnostics,
     plot_residuals,
@@ -182,7 +183,7 @@ def test_point_uncertainty_vs_monte_carlo(cal, diag_joint, stripe_uv, data):
     # would be off by more.
     import equinox as eqx
 
-    from scheimflux.calibrate._solve import least_squares
+    from scheimflux.calibrate import least_squares
 
     obs, truth = data
     _, sigma, _ = point_uncertainty(cal, stripe_uv, diag=diag_joint)

@@ -7,6 +7,7 @@ calibration with laser plane and stage and read it back.
 """
 
 import dataclasses
+import importlib
 import json
 
 import cv2
@@ -122,7 +123,8 @@ def fake(monkeypatch):
     """The solver replaced by a prepared calibration; records what it was given."""
     from test_calibration_file import _thick_lens, make_calibration
 
-    import scheimflux.calibrate._calibrate as calibrate_module
+    # the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
+    calibrate_module = importlib.import_module("scheimflux.calibrate")
 
     calls = []
 

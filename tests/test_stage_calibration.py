@@ -20,12 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._calibrate import (
-    _gauge_points,
-    _laser_points_safe,
-    calibrate_stage,
-    initial_stage,
-)
+from scheimflux.calibrate import calibrate_stage, initial_stage
+from scheimflux.calibrate._model import _laser_points_safe  # private helpers under test
+from scheimflux.calibrate._stage import _gauge_points
 from scheimflux.camera import ThickLensScheimpflug
 from scheimflux.geometry import LaserPlane
 from scheimflux.io import Observations

@@ -1,36 +1,25 @@
 """Calibration of camera, laser plane and rotary stage — separately and jointly, as one
 parameter pytree solved by optimistix Levenberg–Marquardt with autodiff Jacobians."""
 
-from ._calibrate import (
+from ._calibrate import calibrate as calibrate
+from ._camera import (
     DEFAULT_FREEZE as DEFAULT_FREEZE,
     DISTORTIONS as DISTORTIONS,
     MODELS as MODELS,
-    Calibration as Calibration,
     CameraCalibration as CameraCalibration,
-    PlaneFit as PlaneFit,
-    StageCalibration as StageCalibration,
-    board_stripe_points as board_stripe_points,
-    calibrate as calibrate,
     calibrate_camera as calibrate_camera,
-    calibrate_stage as calibrate_stage,
-    fit_laser_plane as fit_laser_plane,
-    fit_plane_tls as fit_plane_tls,
     pixel_footprint_mm as pixel_footprint_mm,
 )
 from ._compare import (
     compare_with_opencv as compare_with_opencv,
     opencv_calibrate as opencv_calibrate,
 )
-from ._diagnostics import (
-    CrossValidation as CrossValidation,
+from ._covariance import (
     Diagnostics as Diagnostics,
-    cross_validate as cross_validate,
     diagnostics as diagnostics,
-    plot_residuals as plot_residuals,
-    point_uncertainty as point_uncertainty,
     residual_function as residual_function,
-    residual_map as residual_map,
 )
+from ._cross_validate import CrossValidation as CrossValidation, cross_validate as cross_validate
 from ._gates import (
     Gate as Gate,
     Quality as Quality,
@@ -55,6 +44,14 @@ from ._opencv import (
     cv2_calibration_flags as cv2_calibration_flags,
     opencv_frozen as opencv_frozen,
 )
+from ._plane import (
+    PlaneFit as PlaneFit,
+    board_stripe_points as board_stripe_points,
+    fit_laser_plane as fit_laser_plane,
+    fit_plane_tls as fit_plane_tls,
+)
+from ._plots import plot_residuals as plot_residuals, residual_map as residual_map
+from ._result import Calibration as Calibration
 from ._solve import (
     Fit as Fit,
     NotConvergedError as NotConvergedError,
@@ -65,7 +62,20 @@ from ._solve import (
     parameter_labels as parameter_labels,
     refine as refine,
 )
+from ._stage import (
+    StageCalibration as StageCalibration,
+    StageInit as StageInit,
+    calibrate_stage as calibrate_stage,
+    initial_stage as initial_stage,
+)
+from ._summary import (
+    calibration_summary as calibration_summary,
+    format_summary as format_summary,
+    format_trust as format_trust,
+    trust_entries as trust_entries,
+)
 from ._uncertainty import (
     fit_diagnostics as fit_diagnostics,
     length_uncertainty as length_uncertainty,
+    point_uncertainty as point_uncertainty,
 )

@@ -20,7 +20,8 @@ import numpy as np
 from ..camera._opencv import OpenCVCamera
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._calibrate import Calibration, fit_laser_plane
+from ._plane import fit_laser_plane
+from ._result import Calibration
 
 __all__ = ["compare_with_opencv", "opencv_calibrate"]
 

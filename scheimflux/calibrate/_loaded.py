@@ -23,7 +23,6 @@ import numpy as np
 
 from ..geometry._transforms import Pose
 from ..io._calibration import CalibrationFileError
-from ._calibrate import Calibration, apply_left_out
 from ._gates import screen_observations
 from ._model import (
     CalibrationData,
@@ -34,6 +33,8 @@ from ._model import (
     joint_residuals,
     make_data,
 )
+from ._rejection import apply_left_out
+from ._result import Calibration
 from ._solve import Fit, free_spec, split
 
 __all__ = ["LoadedCalibration", "MissingObservations", "restore_calibration"]
@@ -141,7 +142,7 @@ def _sigma_stripe_mm(diag: dict, params, obs) -> float:
     s = diag.get("sigma_stripe_mm")
     if isinstance(s, (int, float)) and s > 0:
         return float(s)
-    from ._calibrate import pixel_footprint_mm
+    from ._camera import pixel_footprint_mm
 
     px = diag.get("sigma_stripe_px", 0.05)
     return float(px) * pixel_footprint_mm(params.camera, params.board_poses, obs)

@@ -24,11 +24,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..reconstruct._reconstruct import intersect_ray_plane
-from ._calibrate import Calibration
-from ._diagnostics import CORRELATION_WARN, Diagnostics
+from ._covariance import CORRELATION_WARN, Diagnostics, diagnostics, residual_function
+from ._result import Calibration
 from ._solve import RANK_RTOL, Fit, split
 
-__all__ = ["fit_diagnostics", "length_uncertainty"]
+__all__ = ["fit_diagnostics", "length_uncertainty", "point_uncertainty"]
 
 
 def _final_fit(cal: Calibration) -> tuple[str, Fit]:
@@ -109,6 +109,93 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
         warnings=warnings,
         frozen=tuple(cal.freeze),
     )
+
+
+# ----------------------------------------------------------------------------- points
+
+
+def _point_fn(frame: str):
+    def one(params, uv, i):
+        X, _ = intersect_ray_plane(params.camera.backproject_one(uv), params.plane)
+        if frame == "measurement":
+            X = params.stage.to_measurement(X, i)
+        return X
+
+    return one
+
+
+@eqx.filter_jit
+def _points_and_jacobian(params, spec, idx, uv, fi, frame):
+    one = _point_fn(frame)
+    x0, unravel, static = split(params, spec)
+    x_sub = x0[idx]
+
+    def f(xs, p, i):
+        params = eqx.combine(unravel(x0.at[idx].set(xs)), static)
+        return one(params, p, i)
+
+    X = jax.vmap(f, in_axes=(None, 0, 0))(x_sub, uv, fi)
+    JX = jax.vmap(jax.jacfwd(f), in_axes=(None, 0, 0))(x_sub, uv, fi)
+    return X, JX
+
+
+def point_uncertainty(
+    cal: Calibration,
+    uv,
+    *,
+    frame: str = "camera",
+    frame_index=None,
+    diag: Diagnostics | None = None,
+):
+    """Propagate the calibration's covariance to reconstructed stripe points.
+
+    The points are `X(θ, uv)` (ray of each pixel ∩ laser plane, then the stage for
+    `frame="measurement"`); θ are the free camera and plane parameters (and the stage
+    and eccentricity for the measurement frame). With `Σ_θ` their marginal covariance
+    from the joint problem ([`residual_function`][] with `block="joint"`, so the board
+    poses' uncertainty is included) and `J_X = ∂X/∂θ` (autodiff), `cov = J_X Σ_θ J_Xᵀ`.
+    This is the calibration error of each point, common to every scan; pixel noise of
+    the measured stripe itself adds on top.
+
+    The σ is relative to the **camera frame** (its origin at the image-side principal
+    point): it is dominated by the frame's poorly determined placement along the optical
+    axis (the camera datum that e and z0 share), which moves every point alike and
+    cancels in distances and lengths. For what users measure, use
+    [`length_uncertainty`][] (covariance between points).
+
+    **Arguments:**
+    - `uv`: stripe pixels `(N, 2)`.
+    - `frame`: `"camera"` or `"measurement"` (needs a stage and `frame_index`: an
+      integer or `(N,)`).
+    - `diag`: a precomputed `diagnostics(cal, block="joint")`.
+
+    **Returns:** `(points (N, 3), sigma (N, 3), cov (N, 3, 3))` in mm.
+    """
+    if frame not in ("camera", "measurement"):
+        raise ValueError(f"frame must be 'camera' or 'measurement', got {frame!r}")
+    uv = jnp.asarray(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    fn, params, spec = residual_function(cal, "joint")
+    if frame == "measurement":
+        if params.stage is None:
+            raise ValueError("frame='measurement' needs a calibrated rotary stage")
+        if frame_index is None:
+            raise ValueError("frame='measurement' needs frame_index")
+        fi = jnp.broadcast_to(jnp.asarray(frame_index, dtype=jnp.float64), uv.shape[:1])
+        prefixes = ("camera.", "plane.", "stage.", "eccentricity")
+    else:
+        fi = jnp.zeros(uv.shape[:1], dtype=jnp.float64)
+        prefixes = ("camera.", "plane.")
+    if diag is None:
+        diag = diagnostics(cal, block="joint")
+    elif diag.block != "joint":
+        raise ValueError("point_uncertainty needs diagnostics(cal, block='joint')")
+    idx = diag.select(prefixes)
+    X, JX = _points_and_jacobian(params, spec, jnp.asarray(idx), uv, fi, frame)
+    JX = np.asarray(JX)
+    S = diag.covariance[np.ix_(idx, idx)]
+    cov = np.einsum("nij,jk,nlk->nil", JX, S, JX)
+    sigma = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0.0, None))
+    return np.asarray(X), sigma, cov
 
 
 # ----------------------------------------------------------------------------- lengths

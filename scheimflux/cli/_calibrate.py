@@ -201,72 +201,6 @@ def _check(args) -> None:
         )
 
 
-# ----------------------------------------------------------------------------- summary
-
-_UNIT_LABEL = {"mm": "mm", "deg": "deg", "px": "px", "1": ""}
-
-
-def _num(v, scale: float, spec: str) -> str:
-    return "n/a" if v is None else format(v * scale, spec)
-
-
-def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
-    """Readable summary of a calibration document (as written to CAL.json)."""
-    lines = []
-    d = doc.get("diagnostics", {})
-    cam = doc["camera"]
-    dist = cam["distortion"]
-    joint = "joint" if d.get("joint") else "separate steps"
-    lines.append(
-        f"model: {doc['model']}, distortion: {dist['model']}, init: {d.get('init')}, {joint}"
-    )
-    frozen = set(frozen or d.get("frozen", ()))
-
-    def fmt(path, name, entry):
-        unit = _UNIT_LABEL.get(entry["unit"], entry["unit"])
-        mark = "  (fixed)" if path in frozen or path.rsplit(".", 1)[0] in frozen else ""
-        return f"  {name:<6} = {entry['value']:>16.8g} {unit:<3}{mark}"
-
-    lines.append("camera:")
-    for name, entry in cam.items():
-        if name != "distortion":
-            lines.append(fmt(f"camera.{name}", name, entry))
-    for name, entry in dist.items():
-        if name != "model":
-            lines.append(fmt(f"camera.distortion.{name}", name, entry))
-    pl = doc.get("laser_plane")
-    if pl is None:
-        lines.append("laser plane: none (camera-only calibration)")
-    else:
-        n = ", ".join(f"{x:.6f}" for x in pl["unit_normal"])
-        lines.append(
-            f"laser plane: unit normal ({n}), distance {pl['distance_mm']:.4f} mm "
-            f"(n = [{', '.join(f'{x:.6e}' for x in pl['n_per_mm'])}] 1/mm)"
-        )
-    st = doc.get("stage")
-    if st is not None:
-        lines.append("stage (camera -> measurement):")
-        for i, row in enumerate(st["R_m_c"]):
-            label = "R_m_c =" if i == 0 else ""
-            lines.append(f"  {label:<8}[{', '.join(f'{x:+.8f}' for x in row)}]")
-        t = ", ".join(f"{x:.5f}" for x in st["t_m_c_mm"])
-        lines.append(f"  t_m_c = [{t}] mm, delta omega = {st['delta_omega_deg']:.6g} deg")
-        if st.get("gauge_eccentricity_mm") is not None:
-            ex, ey = st["gauge_eccentricity_mm"]
-            lines.append(f"  gauge eccentricity = ({ex * 1e3:.2f}, {ey * 1e3:.2f}) um")
-    else:
-        lines.append("stage: not calibrated (no rotary-stage scan in the observations)")
-    lines.append(f"reprojection RMS: {_num(d.get('reprojection_rms_px'), 1.0, '.4f')} px")
-    lines.append(f"laser-plane fit RMS: {_num(d.get('laser_plane_rms_mm'), 1e3, '.3f')} um")
-    if d.get("gauge_rms_mm") is not None:
-        lines.append(f"gauge RMS: {_num(d['gauge_rms_mm'], 1e3, '.3f')} um")
-    for name, s in d.get("solves", {}).items():
-        ok = "converged" if s["converged"] else f"NOT converged ({s.get('message', '')})"
-        lines.append(f"solve {name:<7}: {s['steps']:>4} steps, {s['time_s']:7.2f} s, {ok}")
-    lines.append(f"frozen: {', '.join(d.get('frozen', [])) or '(none)'}")
-    return "\n".join(lines)
-
-
 # ----------------------------------------------------------------------------- run
 
 
@@ -288,8 +222,13 @@ def _with_nominal(args, obs):
 
 def run(args) -> int:
     _check(args)
-    from ..calibrate._calibrate import calibrate
-    from ..calibrate._solve import NotConvergedError, RankDeficientError
+    from ..calibrate import (
+        NotConvergedError,
+        RankDeficientError,
+        calibrate,
+        calibration_summary,
+        trust_entries,
+    )
     from ..io._calibration import calibration_to_dict, parse_calibration
     from ..io._files import check_writable, write_json
     from ..io._observations import read_observations
@@ -341,17 +280,11 @@ def run(args) -> int:
         "robust": args.robust or None,
         "reject_sigma": args.reject or None,
         "total_time_s": total,
-        **_trust_entries(cal),
+        **trust_entries(cal),
     }
     doc = calibration_to_dict(cal, diagnostics=extra)
     parse_calibration(doc)
-    print(format_summary(doc))
-    print(format_trust(cal))
-    if cal.params.plane is None:
-        print(
-            "note: no stripe pixels on the board views: camera-only calibration (no laser "
-            "plane; good for export --opencv, not for reconstruct)"
-        )
+    print(calibration_summary(cal, doc))
     print(f"total time: {total:.1f} s")
     failed = [
         f"{name} ({fit.message or 'not converged'} after {fit.steps} steps)"
@@ -381,50 +314,3 @@ def run(args) -> int:
         print(f"warning: wrote a calibration that FAILED its quality gates ({names})")
     print(f"wrote {out}")
     return 0
-
-
-# ----------------------------------------------------------------------------- trust
-
-
-def _uncertainty(cal):
-    """The final solve's parameter diagnostics, or None where the solve kept no JᵀJ."""
-    from ..calibrate._uncertainty import fit_diagnostics
-
-    fits = getattr(cal, "fits", {}) or {}
-    final = fits.get("joint", fits.get("camera"))
-    if final is None or getattr(final, "normal_matrix", None) is None:
-        return None
-    return fit_diagnostics(cal)
-
-
-def _trust_entries(cal) -> dict:
-    """The file's `uncertainty` and `quality` entries (diagnostics section)."""
-    out = {}
-    diag = _uncertainty(cal)
-    if diag is not None:
-        out["uncertainty"] = diag.to_dict()
-    quality = getattr(cal, "quality", None)
-    if quality is not None:
-        out["quality"] = quality.to_dict()
-    return out
-
-
-def format_trust(cal) -> str:
-    """σ of the free parameters, warnings, quality gates and left-out observations."""
-    parts = []
-    diag = _uncertainty(cal)
-    if diag is not None:
-        parts.append(diag.summary())
-    quality = getattr(cal, "quality", None)
-    if quality is not None:
-        parts.append(quality.summary())
-        if quality.plane is not None:
-            p = quality.plane
-            w, s = p["normal_sigma_rad"]
-            parts.append(
-                f"laser plane from {p['n_points']} stripe points on {p['n_views']} boards: "
-                f"spread across the line {p['spread_across_line_mm']:.3g} mm; predicted "
-                f"sigma of the normal {w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
-                f"{p['offset_sigma_mm'] * 1e3:.3g} um"
-            )
-    return "\n".join(parts)

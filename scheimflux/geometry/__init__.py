@@ -1,5 +1,12 @@
-"""Rigid transforms, the laser plane and the rotary stage."""
+"""Rigid transforms, the laser plane, the rotary stage and small geometric fits."""
 
+from ._fitting import (
+    aligned_distances as aligned_distances,
+    fit_plane_svd as fit_plane_svd,
+    perpendicular_basis as perpendicular_basis,
+    rigid_fit as rigid_fit,
+    unit_rows as unit_rows,
+)
 from ._plane import LaserPlane as LaserPlane
 from ._stage import RotaryStage as RotaryStage
 from ._transforms import (

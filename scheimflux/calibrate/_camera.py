@@ -1,0 +1,255 @@
+"""Camera calibration from the checkerboard corners (paper §2.4 steps 1–2): the models,
+their default frozen parameters, the start values and the Levenberg–Marquardt solves."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
+from ..camera._opencv import OpenCVCamera
+from ..camera._pinhole import Pinhole
+from ..camera._thick_lens import ThickLensScheimpflug
+from ..geometry._transforms import Pose
+from ..io._observations import Observations
+from ._init import (
+    closed_form_pinhole,
+    nominal_thick_lens,
+    poses_for_central_camera,
+    require_pixel_pitch,
+    thick_lens_from_pinhole,
+)
+from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
+from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
+from ._solve import Fit, least_squares
+
+MODELS = ("thick-lens", "pinhole", "opencv")
+DISTORTIONS = ("none", "radial-tangential", "division", "opencv")
+
+
+def make_distortion(name: str):
+    """A zero-initialised distortion model by name."""
+    if name == "none":
+        return NoDistortion()
+    if name == "radial-tangential":
+        return RadialTangential()
+    if name == "division":
+        return Division()
+    if name == "opencv":
+        return OpenCVDistortion()
+    raise ValueError(f"distortion must be one of {DISTORTIONS}, got {name!r}")
+
+
+# What image data cannot determine is held at its datasheet / nominal value by default.
+# The pixel rays of the thick-lens model are a 3x3 projective map K_f, observable only up
+# to a rotation (absorbed by the board poses) and a scale: 5 numbers for the 9 lens
+# parameters. With e = 0 the model is exactly a zero-skew pinhole (3 numbers once the
+# pixel pitch is known), so the sensor tilt is not observable from geometry alone. The
+# defaults fix the pixel pitch (datasheet), f (lens datasheet) and a gauge for the
+# tilt: the nominal adapter tilt when it is known, else the axis through the sensor
+# centre. `diagnostics()` reports the singular values that show this.
+DEFAULT_FREEZE = {
+    ("thick-lens", "nominal"): (
+        "camera.dx",
+        "camera.dy",
+        "camera.f",
+        "camera.phi",
+        "camera.theta",
+    ),
+    ("thick-lens", "closed-form"): (
+        "camera.dx",
+        "camera.dy",
+        "camera.f",
+        "camera.x0",
+        "camera.y0",
+    ),
+    ("pinhole", "closed-form"): (),
+    # OpenCV's model: the coefficients its flags leave out are added (`opencv_frozen`)
+    ("opencv", "closed-form"): (),
+}
+
+
+def _check_observations(obs: Observations, *, min_views: int = 3, min_corners: int = 6):
+    if not obs.views:
+        raise ValueError("the observations hold no views")
+    _, mask = obs.corners()
+    good = mask.sum(axis=1) >= min_corners
+    if good.sum() < min_views:
+        raise ValueError(
+            f"calibration needs at least {min_views} views with {min_corners}+ detected "
+            f"corners; {int(good.sum())} of {len(obs.views)} views have them"
+        )
+    bad = [i for i in range(len(obs.views)) if not good[i]]
+    if bad:
+        raise ValueError(f"views {bad} have fewer than {min_corners} detected corners; remove them")
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraCalibration:
+    """Camera and board poses from the checkerboard corners."""
+
+    camera: ThickLensScheimpflug | Pinhole | OpenCVCamera
+    poses: Pose
+    fit: Fit
+    reprojection_rms_px: float
+    init: str
+    freeze: tuple = ()  # the parameter paths held fixed
+
+
+def _initial(obs, model, init):
+    if init not in ("auto", "nominal", "closed-form"):
+        raise ValueError(f"init must be 'auto', 'nominal' or 'closed-form', got {init!r}")
+    if model == "pinhole":
+        return (*closed_form_pinhole(obs), "closed-form")
+    if model == "opencv":
+        pin, poses = closed_form_pinhole(obs)
+        return opencv_from_pinhole(pin), poses, "closed-form"
+    nom = obs.nominal
+    has_nominal = nom is not None and nom.focal_length_mm and nom.magnification
+    if init == "nominal" or (init == "auto" and has_nominal and nom.tilt_deg is not None):
+        cam = nominal_thick_lens(obs)
+        return cam, poses_for_central_camera(cam, obs), "nominal"
+    pin, poses = closed_form_pinhole(obs)
+    f = nom.focal_length_mm if nom is not None else None
+    cam, poses = thick_lens_from_pinhole(pin, poses, obs, f=f)
+    return cam, poses, "closed-form"
+
+
+def _default_distortion(model: str, distortion: str | None) -> str:
+    """The most accurate default: radial-tangential for the thick lens; the pinhole
+    (paper eq. 14) has none; OpenCV's model has its own (set by its flags)."""
+    if model == "opencv":
+        if distortion not in (None, "opencv"):
+            raise ValueError(
+                "the OpenCV model has OpenCV's distortion (choose its terms with "
+                f"opencv_flags), not distortion={distortion!r}"
+            )
+        return "opencv"
+    if distortion == "opencv":
+        raise ValueError("distortion='opencv' belongs to model='opencv'")
+    if distortion is not None:
+        return distortion
+    return "radial-tangential" if model == "thick-lens" else "none"
+
+
+def _model_freeze(model: str, how: str, freeze, opencv_flags) -> tuple[str, ...]:
+    """The frozen set: the user's (or the default), plus the OpenCV terms not in the model."""
+    base = DEFAULT_FREEZE[(model, how)] if freeze is None else tuple(freeze)
+    if model != "opencv":
+        return tuple(base)
+    return tuple(dict.fromkeys(tuple(base) + opencv_frozen(opencv_flags)))
+
+
+def calibrate_camera(
+    obs: Observations,
+    *,
+    model: str = "thick-lens",
+    distortion: str | None = None,
+    init: str = "auto",
+    freeze: Sequence[str] | None = None,
+    sigma_corner_px: float = 0.03,
+    robust: float | None = None,
+    max_steps: int = 200,
+    throw: bool = True,
+    opencv_flags: Sequence[str] | str | None = None,
+) -> CameraCalibration:
+    """Calibrate the camera from checkerboard corners (Levenberg–Marquardt).
+
+    **Arguments:**
+    - `obs`: observations (corners per view, board geometry, sensor).
+    - `model`: `"thick-lens"` (paper eq. 12) or `"pinhole"` (eq. 14).
+    - `distortion`: `"radial-tangential"` (k1, k2, k3, p1, p2), `"division"` or
+      `"none"`, applied in the untilted image plane (thick lens only).
+    - `init`: `"nominal"` (paper step 2: nominal f, magnification, tilt, e = 0),
+      `"closed-form"` (homographies, no nominal tilt needed) or `"auto"`.
+    - `freeze`: parameter paths held fixed (default `DEFAULT_FREEZE[model]`).
+    - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners.
+    - `throw`: raise `NotConvergedError` if LM does not converge.
+    - `opencv_flags`: for `model="opencv"` (OpenCV's camera, equal to
+      `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
+      `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`
+      (see `scheimflux.calibrate._opencv`); a list or `"rational,tilted"`.
+
+    The thick-lens model needs the pixel pitch (`obs.pixel_pitch_mm`, from the sensor's
+    datasheet): without it a `ValueError` says so (`with_nominal(obs, pixel_pitch_mm=...)`
+    or `calibrate --pixel-pitch-mm` provide it).
+    """
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if model != "opencv" and opencv_flags:
+        raise ValueError(f"opencv_flags apply to model='opencv', not {model!r}")
+    if model == "opencv" and init == "nominal":
+        raise ValueError("init='nominal' is the thick lens's; the OpenCV model starts closed-form")
+    opencv_flags = parse_opencv_flags(opencv_flags)
+    _check_observations(obs)
+    if model == "thick-lens":
+        require_pixel_pitch(obs)
+    distortion = _default_distortion(model, distortion)
+    dist = make_distortion(distortion)
+    if model == "pinhole" and distortion != "none":
+        raise ValueError(
+            "the pinhole model (paper eq. 14) has no distortion; use "
+            "distortion='none' or the thick-lens model"
+        )
+    camera, poses, how = _initial(obs, model, init)
+    freeze = _model_freeze(model, how, freeze, opencv_flags)
+    if model == "opencv":
+        # the ideal pinhole first (every coefficient at zero), then the model's terms
+        first = least_squares(
+            camera_residuals,
+            SystemParams(camera, poses),
+            make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
+            freeze=tuple(dict.fromkeys(freeze + OPENCV_COEFFICIENTS)),
+            max_steps=max_steps,
+            throw=False,
+        )
+        camera, poses = first.params.camera, first.params.board_poses
+    if model == "thick-lens" and distortion != "none":
+        # the ideal camera first, then with distortion from zero
+        first = least_squares(
+            camera_residuals,
+            SystemParams(camera, poses),
+            make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
+            freeze=freeze,
+            max_steps=max_steps,
+            throw=False,
+        )
+        camera, poses = first.params.camera, first.params.board_poses
+        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
+    data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
+    params = SystemParams(camera, poses)
+    fit = least_squares(
+        camera_residuals, params, data, freeze=freeze, max_steps=max_steps, throw=throw
+    )
+    rms = _rms_px(fit.params, data)
+    return CameraCalibration(
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)
+    )
+
+
+# Compiled residual evaluation for the summaries (eager evaluation would dispatch every
+# operation of the distortion's fixed point separately).
+_corner_errors_jit = eqx.filter_jit(corner_errors_px)
+
+
+def _rms_px(params, data: CalibrationData) -> float:
+    r = np.asarray(_corner_errors_jit(params, data))
+    n = float(np.sum(np.asarray(data.corner_w)))
+    return float(np.sqrt(np.sum(r**2) / (2 * n)))
+
+
+@eqx.filter_jit
+def _directions(camera, uv):
+    return camera.backproject(uv).direction
+
+
+def pixel_footprint_mm(camera, poses: Pose, obs: Observations) -> float:
+    """Size (mm) of one pixel at the boards' distance, at the sensor centre."""
+    c = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
+    r0, r1 = _directions(camera, jnp.asarray(np.stack([c, c + [1.0, 0.0]])))
+    angle = float(jnp.linalg.norm(jnp.cross(r0, r1)))
+    return angle * float(np.median(np.linalg.norm(np.asarray(poses.translation), axis=1)))

@@ -1,0 +1,131 @@
+"""The laser plane from the stripe on the calibrated boards (paper §2.4 step 3): stripe
+pixels → points on their board planes → total-least-squares plane."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry._fitting import fit_plane_svd
+from ..geometry._plane import LaserPlane
+from ..geometry._transforms import Pose
+from ..io._observations import Observations
+from ._gates import plane_conditioning
+from ._model import stripe_residuals
+
+# Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`).
+_stripe_residuals_jit = eqx.filter_jit(stripe_residuals)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaneFit:
+    """Laser plane by total least squares through the stripe points on the boards."""
+
+    plane: LaserPlane
+    points: np.ndarray  # (N, 3) camera frame, mm
+    residuals_mm: np.ndarray  # signed distances from the plane
+    conditioning: dict | None = None  # see `_gates.plane_conditioning`
+
+    @property
+    def rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals_mm**2)))
+
+
+@eqx.filter_jit
+def _onto_planes(camera, normals, uv):
+    """Each pixel's ray meets its own plane `n · X = 1` (rows of `normals`)."""
+
+    def one(p, n):
+        ray = camera.backproject_one(p)
+        t = (1.0 - jnp.dot(n, ray.origin)) / jnp.dot(n, ray.direction)
+        return ray.origin + t * ray.direction
+
+    return jax.vmap(one)(uv, normals)
+
+
+def _pad_pow2(x: np.ndarray, minimum: int = 256) -> np.ndarray:
+    """Pad rows (repeating the first) to a power of two, so compiled shapes recur."""
+    m = max(minimum, 1 << (len(x) - 1).bit_length())
+    return np.concatenate([x, np.repeat(x[:1], m - len(x), axis=0)])
+
+
+def board_stripe_points(camera, poses: Pose, obs: Observations) -> np.ndarray:
+    """Stripe pixels on each board → 3-D points where their rays meet the board plane
+    (all views in one compiled call)."""
+    R = np.asarray(jax.vmap(lambda p: p.R)(poses))
+    t = np.asarray(poses.translation)
+    uv, normals = [], []
+    for i, view in enumerate(obs.views):
+        px = np.asarray(view.stripe_px, dtype=np.float64).reshape(-1, 2)
+        px = px[np.all(np.isfinite(px), axis=1)]
+        n = R[i, :, 2] / np.dot(R[i, :, 2], t[i])
+        uv.append(px)
+        normals.append(np.broadcast_to(n, px.shape[:1] + (3,)))
+    uv, normals = np.concatenate(uv), np.concatenate(normals)
+    if len(uv) == 0:
+        raise ValueError("no stripe pixels on any board view: cannot calibrate the laser plane")
+    X = _onto_planes(camera, jnp.asarray(_pad_pow2(normals)), jnp.asarray(_pad_pow2(uv)))
+    return np.asarray(X)[: len(uv)]
+
+
+def fit_plane_tls(points: np.ndarray) -> LaserPlane:
+    """Total-least-squares plane through 3-D points (SVD of the centred points)."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 3:
+        raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
+    c, normal, s = fit_plane_svd(points)
+    if s[1] < 1e-9 * max(s[0], 1e-300):
+        raise ValueError(
+            "stripe points are collinear: the laser plane is not determined "
+            "(use board poses at different depths or tilts)"
+        )
+    d = float(normal @ c)
+    if abs(d) < 1e-9:
+        raise ValueError("the fitted laser plane passes through the camera origin")
+    return LaserPlane(normal / d)
+
+
+def _stripe_views(obs: Observations) -> np.ndarray:
+    """The view index of each finite board stripe pixel, in `board_stripe_points` order."""
+    idx = []
+    for i, view in enumerate(obs.views):
+        px = np.asarray(view.stripe_px, dtype=np.float64).reshape(-1, 2)
+        idx.append(np.full(int(np.all(np.isfinite(px), axis=1).sum()), i))
+    return np.concatenate(idx) if idx else np.zeros(0, int)
+
+
+def fit_laser_plane(
+    camera, poses: Pose, obs: Observations, *, sigma_mm: float | None = None
+) -> PlaneFit:
+    """Paper §2.4 step 3: stripe points on the calibrated boards → TLS plane.
+
+    With the stripe points' noise `sigma_mm`, the plane's conditioning is checked first
+    (`_gates.plane_conditioning`): stripes on fewer than 2 board poses, or on poses whose
+    lines are collinear, raise `ValueError` instead of returning an undetermined plane.
+    """
+    pts = board_stripe_points(camera, poses, obs)
+    cond = None
+    if sigma_mm is not None:
+        cond = plane_conditioning(pts, _stripe_views(obs), sigma_mm)
+    plane = fit_plane_tls(pts)
+    res = np.asarray(plane.signed_distance(jnp.asarray(pts)))
+    return PlaneFit(plane, pts, res, cond)
+
+
+def _plane_rms(params, data) -> float:
+    r = np.asarray(_stripe_residuals_jit(params, data)) * float(data.sigma_stripe_mm)
+    n = float(np.sum(np.asarray(data.stripe_w)))
+    return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))
+
+
+def _has_board_stripes(obs: Observations) -> bool:
+    """Whether any board view holds a finite stripe pixel."""
+    for view in obs.views:
+        px = np.asarray(view.stripe_px, dtype=np.float64).reshape(-1, 2)
+        if np.any(np.all(np.isfinite(px), axis=1)):
+            return True
+    return False

@@ -1,0 +1,118 @@
+"""The quality gates of a finished calibration (see `scheimflux.calibrate._gates`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from ..camera._pinhole import Pinhole
+from ..camera._thick_lens import ThickLensScheimpflug
+from ._gates import (
+    Quality,
+    QualityError,
+    axis_point_gate,
+    board_plane_angles_deg,
+    fraction_gate,
+    rms_gate,
+    tails_gate,
+)
+from ._rejection import _block_residuals
+from ._result import Calibration
+
+
+def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:
+    """`cal` with its quality gates assessed; `QualityError` (with `throw`) if one fails."""
+    quality = assess_quality(cal, rejected, conditioning)
+    cal = dataclasses.replace(cal, quality=quality)
+    if throw and not quality.passed:
+        raise QualityError(
+            "calibration failed its quality gates: "
+            + "; ".join(g.message for g in quality.failures),
+            cal,
+        )
+    return cal
+
+
+# A board within this angle of the laser plane carries a poorly determined stripe line.
+WEAK_BOARD_ANGLE_DEG = 5.0
+
+
+def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) -> Quality:
+    """The quality gates of a calibration (see `scheimflux.calibrate._gates`)."""
+    params, data = cal.params, cal.data
+    W, H = cal.sensor_size
+    sigma_c = float(data.sigma_corner_px)
+    sigma_s = float(data.sigma_stripe_mm)
+    gates = [
+        rms_gate(
+            "reprojection",
+            cal.reprojection_rms_px,
+            sigma_c,
+            "px",
+            "the camera model does not fit the corners (a bad start converged to a wrong "
+            "camera, a missing distortion model, or a wrong --sigma-corner-px); try "
+            "--init closed-form",
+        )
+    ]
+    warnings = []
+    err, stripe, gauge = _block_residuals(params, data)
+    cw, sw, gw = (np.asarray(w) > 0 for w in (data.corner_w, data.stripe_w, data.gauge_w))
+    gates.append(tails_gate("corner", (err / sigma_c)[cw].reshape(-1)))
+    n_out = int(rejected.get("corner_outliers", 0) or 0)
+    gates.append(fraction_gate("corners", n_out, int(cw.sum()) + n_out))
+    if params.plane is not None and sw.any():
+        gates.append(
+            rms_gate(
+                "stripe",
+                cal.plane_rms_mm,
+                sigma_s,
+                "mm",
+                "the board stripe points do not lie on one laser plane (stripes from the "
+                "wrong views, reflections, or a wrong --sigma-stripe-px)",
+            )
+        )
+        gates.append(tails_gate("stripe", stripe[sw]))
+        n_out = int(rejected.get("stripe_outliers", 0) or 0)
+        gates.append(fraction_gate("stripe points", n_out, int(sw.sum()) + n_out))
+        views = np.flatnonzero(sw.any(axis=1))
+        R = np.asarray(jax.vmap(lambda p: p.R)(params.board_poses))
+        angles = board_plane_angles_deg(R[views, :, 2], np.asarray(params.plane.n))
+        weak = views[angles < WEAK_BOARD_ANGLE_DEG]
+        if len(weak):
+            warnings.append(
+                f"weak geometry: boards of views {weak.tolist()} lie within "
+                f"{WEAK_BOARD_ANGLE_DEG:g}° of the laser plane (smallest "
+                f"{float(angles.min()):.2g}°): their stripe lines are poorly determined; "
+                "tilt the boards against the laser plane"
+            )
+    if cal.gauge_rms_mm is not None:
+        gates.append(
+            rms_gate(
+                "gauge",
+                cal.gauge_rms_mm,
+                sigma_s,
+                "mm",
+                "the gauge scan does not fit a cylinder of the gauge radius about the table "
+                "axis (wrong gauge radius, or Δω)",
+            )
+        )
+    cam = params.camera
+    if isinstance(cam, ThickLensScheimpflug):
+        gates.append(axis_point_gate(float(cam.x0), float(cam.y0), W, H))
+    elif isinstance(cam, Pinhole):
+        g = axis_point_gate(float(cam.x0), float(cam.y0), W, H)
+        if not g.passed:
+            warnings.append(
+                f"the pinhole's principal point ({float(cam.x0):.1f}, {float(cam.y0):.1f}) "
+                "px lies off the sensor: expected for a tilted sensor, which the pinhole "
+                "(paper eq. 14) absorbs into skew and principal point; the thick-lens "
+                "model describes it"
+            )
+    for name, fit in cal.fits.items():
+        if not fit.converged:
+            warnings.append(f"the {name} solve did not converge ({fit.message})")
+    if not cal.joint and rejected.get("threshold_sigma") is not None:
+        warnings.append("outliers are counted but not left out without the joint solve")
+    return Quality(tuple(gates), dict(rejected), tuple(warnings), plane_info)

@@ -1,0 +1,125 @@
+"""The rejection pass after the joint solve: which observations lie beyond a robust
+threshold, re-solving without them, and the record of what was left out."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._camera import _corner_errors_jit
+from ._gates import outlier_masks
+from ._model import CalibrationData
+from ._plane import _stripe_residuals_jit
+from ._solve import least_squares
+from ._stage import _gauge_residuals_jit
+
+LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge")
+
+
+def _left_out_indices(masks) -> dict:
+    """The rejection masks as `{block: (n, 2) int array}` (row, index) per block."""
+    return {k: np.argwhere(np.asarray(m)) for k, m in zip(LEFT_OUT_BLOCKS, masks)}
+
+
+def apply_left_out(data: CalibrationData, left_out: dict) -> CalibrationData:
+    """`data` with the observations of `left_out` (see `Calibration.left_out`) at weight
+    0; `ValueError` when an index does not fit the data."""
+    masks = []
+    for k, w in zip(LEFT_OUT_BLOCKS, (data.corner_w, data.stripe_w, data.gauge_w)):
+        m = np.zeros(w.shape, bool)
+        idx = np.asarray(left_out.get(k, ()), dtype=int).reshape(-1, 2)
+        if len(idx) and (np.any(idx < 0) or np.any(idx >= np.array(w.shape))):
+            raise ValueError(f"left-out {k} index out of range for these observations")
+        m[idx[:, 0], idx[:, 1]] = True
+        masks.append(m)
+    return _without(data, masks)
+
+
+# At most this many rejection passes (re-solves) after the joint solve.
+MAX_REJECTION_PASSES = 3
+
+
+def _without(data: CalibrationData, masks) -> CalibrationData:
+    """`data` with the observations under `masks` (True: left out) at weight 0."""
+    return eqx.tree_at(
+        lambda d: (d.corner_w, d.stripe_w, d.gauge_w),
+        data,
+        tuple(
+            jnp.where(jnp.asarray(m), 0.0, w)
+            for m, w in zip(masks, (data.corner_w, data.stripe_w, data.gauge_w))
+        ),
+    )
+
+
+def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw):
+    """The rejection pass: leave out what lies beyond `reject` robust σ, solve again.
+
+    A few gross outliers pull a least-squares solution so far that good neighbours (the
+    other corners of their view) look like outliers too. So the masks are recomputed from
+    every observation at each new solution, and the joint problem is re-solved (from the
+    separate steps' `start`: from the contaminated optimum LM crept along the weak
+    depth valley without converging) until the masks stop changing, at most
+    `MAX_REJECTION_PASSES` times. Same shapes (weights 0): the compiled solver is reused.
+    With `fn` None (no joint solve) the outliers are only counted.
+
+    **Returns:** `(fit or None, masks applied, number of passes)`.
+    """
+    masks = _outliers(params, data, reject)
+    fit, applied, passes = None, tuple(np.zeros_like(m) for m in masks), 0
+    if fn is not None:
+        while passes < MAX_REJECTION_PASSES:
+            same = all(np.array_equal(a, m) for a, m in zip(applied, masks))
+            if same:
+                break
+            fit = least_squares(
+                fn, start, _without(data, masks), freeze=freeze, max_steps=max_steps, throw=throw
+            )
+            applied, passes = masks, passes + 1
+            masks = _outliers(fit.params, data, reject)
+    else:
+        applied = masks
+    return fit, applied, passes
+
+
+# ----------------------------------------------------------------------------- quality
+
+
+def _unrobust(r: np.ndarray, k: float | None) -> np.ndarray:
+    """Invert `_model._robustify` (Huber's square-root trick) to the plain residual."""
+    if k is None:
+        return r
+    a = np.abs(r)
+    return np.where(a <= k, r, np.sign(r) * (a**2 + k * k) / (2 * k))
+
+
+def _block_residuals(params, data):
+    """Corner errors `(V, M, 2)` px and the plain stripe `(V, K)` and gauge `(F, L)`
+    residuals (units of their σ; zeros where the block is absent)."""
+    err = np.asarray(_corner_errors_jit(params, data))
+    if params.plane is None:
+        stripe = np.zeros(data.stripe_w.shape)
+    else:
+        stripe = np.asarray(_stripe_residuals_jit(params, data)).reshape(data.stripe_w.shape)
+        stripe = _unrobust(stripe, data.robust)
+    if params.stage is None:
+        gauge = np.zeros(data.gauge_w.shape)
+    else:
+        gauge = np.asarray(_gauge_residuals_jit(params, data))[:-2].reshape(data.gauge_w.shape)
+        gauge = _unrobust(gauge, data.robust)
+    return err, stripe, gauge
+
+
+def _outliers(params, data, threshold: float):
+    err, stripe, gauge = _block_residuals(params, data)
+    return outlier_masks(
+        err,
+        np.asarray(data.corner_w),
+        stripe,
+        np.asarray(data.stripe_w),
+        gauge,
+        np.asarray(data.gauge_w),
+        threshold=threshold,
+        corner_sigma=float(data.sigma_corner_px),
+        sigma=1.0,  # stripe and gauge residuals are in units of their σ
+    )

@@ -1,0 +1,170 @@
+"""The text summary of a calibration, as `scheimflux calibrate` prints it.
+
+[`calibration_summary`][] is the whole printout; [`format_summary`][] formats the
+calibration document (the dict written to CAL.json), [`format_trust`][] the σ of the free
+parameters, the warnings, the quality gates and the left-out observations, and
+[`trust_entries`][] the file's entries for those.
+"""
+
+from __future__ import annotations
+
+from ._uncertainty import fit_diagnostics
+
+__all__ = ["calibration_summary", "format_summary", "format_trust", "trust_entries"]
+
+CAMERA_ONLY_NOTE = (
+    "note: no stripe pixels on the board views: camera-only calibration (no laser "
+    "plane; good for export --opencv, not for reconstruct)"
+)
+
+
+def calibration_summary(cal, doc: dict | None = None) -> str:
+    """Everything `scheimflux calibrate` prints about a calibration.
+
+    **Arguments:**
+    - `cal`: a `Calibration`.
+    - `doc`: its calibration document when already built (what is written to CAL.json);
+      by default `calibration_to_dict(cal, diagnostics=trust_entries(cal))`.
+
+    **Returns:** [`format_summary`][] of the document, then [`format_trust`][] of `cal`,
+    then a note for a camera-only calibration, one item a line.
+    """
+    if doc is None:
+        from ..io._calibration import calibration_to_dict
+
+        doc = calibration_to_dict(cal, diagnostics=trust_entries(cal))
+    parts = [format_summary(doc), format_trust(cal)]
+    if cal.params.plane is None:
+        parts.append(CAMERA_ONLY_NOTE)
+    return "\n".join(parts)
+
+
+_UNIT_LABEL = {"mm": "mm", "deg": "deg", "px": "px", "1": ""}
+
+
+def _num(v, scale: float, spec: str) -> str:
+    return "n/a" if v is None else format(v * scale, spec)
+
+
+def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
+    """Readable summary of a calibration document (as written to CAL.json).
+
+    **Arguments:**
+    - `doc`: the calibration as a JSON-ready dict
+      ([`scheimflux.io.calibration_to_dict`][], or a calibration file read as JSON).
+    - `frozen`: parameter paths to mark `(fixed)`; by default the document's own
+      `diagnostics.frozen`.
+
+    **Returns:** the text: model, camera parameters (with units), laser plane, stage,
+    RMS figures, the solves and the frozen set, one item a line.
+    """
+    lines = []
+    d = doc.get("diagnostics", {})
+    cam = doc["camera"]
+    dist = cam["distortion"]
+    joint = "joint" if d.get("joint") else "separate steps"
+    lines.append(
+        f"model: {doc['model']}, distortion: {dist['model']}, init: {d.get('init')}, {joint}"
+    )
+    frozen = set(frozen or d.get("frozen", ()))
+
+    def fmt(path, name, entry):
+        unit = _UNIT_LABEL.get(entry["unit"], entry["unit"])
+        mark = "  (fixed)" if path in frozen or path.rsplit(".", 1)[0] in frozen else ""
+        return f"  {name:<6} = {entry['value']:>16.8g} {unit:<3}{mark}"
+
+    lines.append("camera:")
+    for name, entry in cam.items():
+        if name != "distortion":
+            lines.append(fmt(f"camera.{name}", name, entry))
+    for name, entry in dist.items():
+        if name != "model":
+            lines.append(fmt(f"camera.distortion.{name}", name, entry))
+    pl = doc.get("laser_plane")
+    if pl is None:
+        lines.append("laser plane: none (camera-only calibration)")
+    else:
+        n = ", ".join(f"{x:.6f}" for x in pl["unit_normal"])
+        lines.append(
+            f"laser plane: unit normal ({n}), distance {pl['distance_mm']:.4f} mm "
+            f"(n = [{', '.join(f'{x:.6e}' for x in pl['n_per_mm'])}] 1/mm)"
+        )
+    st = doc.get("stage")
+    if st is not None:
+        lines.append("stage (camera -> measurement):")
+        for i, row in enumerate(st["R_m_c"]):
+            label = "R_m_c =" if i == 0 else ""
+            lines.append(f"  {label:<8}[{', '.join(f'{x:+.8f}' for x in row)}]")
+        t = ", ".join(f"{x:.5f}" for x in st["t_m_c_mm"])
+        lines.append(f"  t_m_c = [{t}] mm, delta omega = {st['delta_omega_deg']:.6g} deg")
+        if st.get("gauge_eccentricity_mm") is not None:
+            ex, ey = st["gauge_eccentricity_mm"]
+            lines.append(f"  gauge eccentricity = ({ex * 1e3:.2f}, {ey * 1e3:.2f}) um")
+    else:
+        lines.append("stage: not calibrated (no rotary-stage scan in the observations)")
+    lines.append(f"reprojection RMS: {_num(d.get('reprojection_rms_px'), 1.0, '.4f')} px")
+    lines.append(f"laser-plane fit RMS: {_num(d.get('laser_plane_rms_mm'), 1e3, '.3f')} um")
+    if d.get("gauge_rms_mm") is not None:
+        lines.append(f"gauge RMS: {_num(d['gauge_rms_mm'], 1e3, '.3f')} um")
+    for name, s in d.get("solves", {}).items():
+        ok = "converged" if s["converged"] else f"NOT converged ({s.get('message', '')})"
+        lines.append(f"solve {name:<7}: {s['steps']:>4} steps, {s['time_s']:7.2f} s, {ok}")
+    lines.append(f"frozen: {', '.join(d.get('frozen', [])) or '(none)'}")
+    return "\n".join(lines)
+
+
+def _uncertainty(cal):
+    """The final solve's parameter diagnostics, or None where the solve kept no JᵀJ."""
+    fits = getattr(cal, "fits", {}) or {}
+    final = fits.get("joint", fits.get("camera"))
+    if final is None or getattr(final, "normal_matrix", None) is None:
+        return None
+    return fit_diagnostics(cal)
+
+
+def trust_entries(cal) -> dict:
+    """The calibration file's `uncertainty` and `quality` entries (its diagnostics section).
+
+    **Arguments:**
+    - `cal`: a `Calibration` (or anything with its `fits` and `quality`).
+
+    **Returns:** `{"uncertainty": Diagnostics.to_dict(), "quality": Quality.to_dict()}`,
+    each present only where the calibration has it (the final solve kept its `JᵀJ`; the
+    gates were assessed).
+    """
+    out = {}
+    diag = _uncertainty(cal)
+    if diag is not None:
+        out["uncertainty"] = diag.to_dict()
+    quality = getattr(cal, "quality", None)
+    if quality is not None:
+        out["quality"] = quality.to_dict()
+    return out
+
+
+def format_trust(cal) -> str:
+    """σ of the free parameters, warnings, quality gates and left-out observations.
+
+    **Arguments:**
+    - `cal`: a `Calibration`.
+
+    **Returns:** the text, one item a line (empty where the calibration has neither
+    parameter statistics nor gates).
+    """
+    parts = []
+    diag = _uncertainty(cal)
+    if diag is not None:
+        parts.append(diag.summary())
+    quality = getattr(cal, "quality", None)
+    if quality is not None:
+        parts.append(quality.summary())
+        if quality.plane is not None:
+            p = quality.plane
+            w, s = p["normal_sigma_rad"]
+            parts.append(
+                f"laser plane from {p['n_points']} stripe points on {p['n_views']} boards: "
+                f"spread across the line {p['spread_across_line_mm']:.3g} mm; predicted "
+                f"sigma of the normal {w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
+                f"{p['offset_sigma_mm'] * 1e3:.3g} um"
+            )
+    return "\n".join(parts)
