@@ -65,6 +65,36 @@ def calibrate(
     converged without it), while the rejection pass leaves out the same outliers.
     `cal.quality` holds the gates, counts and warnings (`scheimflux.calibrate._gates`).
 
+    **Arguments:**
+    - `obs`: observations: board corners per view (at least 3 views with 6+ corners),
+      the laser line on the boards (`stripe_px`; none at all: camera-only) and
+      optionally a rotary-stage gauge scan (`obs.stage`).
+    - `model`: `"thick-lens"` (paper eq. 12; needs the pixel pitch), `"pinhole"`
+      (eq. 14) or `"opencv"` (OpenCV's camera).
+    - `distortion`: `"radial-tangential"`, `"division"` or `"none"` (thick lens); None:
+      the model's default (see [`calibrate_camera`][]).
+    - `init`: `"auto"`, `"nominal"` or `"closed-form"` start of the camera (see
+      [`calibrate_camera`][]).
+    - `joint`: after the separate steps, solve every block together (default); False:
+      stop after the paper's sequence (outliers are then only counted).
+    - `freeze`: parameter paths held fixed, e.g. `("camera.dx", "camera.dy",
+      "camera.f")`, `"stage.R_m_c"`, `"eccentricity"`; None: `DEFAULT_FREEZE`. A given
+      list replaces the defaults; Δω of the stage is always held.
+    - `sigma_corner_px`: the corners' noise σ (px per coordinate).
+    - `sigma_stripe_px`: the stripe centres' noise σ (px), converted to mm at the
+      camera's pixel footprint on the boards for the stripe and gauge residuals.
+    - `robust`: Huber threshold (units of σ) on every residual; None: off (see above).
+    - `reject`: the rejection pass's threshold (robust σ); None: no rejection pass.
+    - `max_steps`: Levenberg–Marquardt steps per solve.
+    - `throw`: raise on an unconverged solve or a failed gate (below); False: return
+      the result with `fit.converged` and `quality.passed` telling.
+    - `opencv_flags`: the OpenCV model's terms (`model="opencv"` only; see
+      [`calibrate_camera`][]).
+
+    **Returns:** a [`Calibration`][]: the parameter pytree (camera, board poses, laser
+    plane, stage, eccentricity), every solve's `Fit`, the RMS figures, the data the
+    residuals were computed from, the quality gates and what was left out.
+
     **Raises:** with `throw`, `NotConvergedError` when a solve fails and `QualityError`
     when a quality gate fails (both carry the result); `ValueError` for data that cannot
     determine the laser plane or that leave parameters undetermined.

@@ -160,19 +160,36 @@ def calibrate_camera(
     """Calibrate the camera from checkerboard corners (Levenberg–Marquardt).
 
     **Arguments:**
-    - `obs`: observations (corners per view, board geometry, sensor).
-    - `model`: `"thick-lens"` (paper eq. 12) or `"pinhole"` (eq. 14).
+    - `obs`: observations (corners per view, board geometry, sensor); at least 3 views,
+      each with 6 or more detected corners.
+    - `model`: `"thick-lens"` (paper eq. 12), `"pinhole"` (eq. 14) or `"opencv"`
+      (OpenCV's camera, see `opencv_flags`).
     - `distortion`: `"radial-tangential"` (k1, k2, k3, p1, p2), `"division"` or
-      `"none"`, applied in the untilted image plane (thick lens only).
+      `"none"`, applied in the untilted image plane (thick lens only); None: the
+      model's default (radial-tangential for the thick lens, none for the pinhole,
+      OpenCV's own for `"opencv"`).
     - `init`: `"nominal"` (paper step 2: nominal f, magnification, tilt, e = 0),
-      `"closed-form"` (homographies, no nominal tilt needed) or `"auto"`.
-    - `freeze`: parameter paths held fixed (default `DEFAULT_FREEZE[model]`).
-    - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners.
-    - `throw`: raise `NotConvergedError` if LM does not converge.
+      `"closed-form"` (homographies, no nominal tilt needed) or `"auto"` (nominal when
+      the observations give focal length, magnification and tilt).
+    - `freeze`: parameter paths held fixed, e.g. `("camera.dx", "camera.dy")`; None:
+      `DEFAULT_FREEZE[(model, how it was initialised)]` (pixel pitch, f and a tilt
+      gauge for the thick lens); with `"opencv"` the terms outside `opencv_flags` are
+      always added.
+    - `sigma_corner_px`: the corners' noise σ (px per coordinate): the residuals'
+      weight.
+    - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners; None: plain
+      least squares.
+    - `max_steps`: Levenberg–Marquardt steps per solve.
+    - `throw`: raise `NotConvergedError` if the final solve does not converge (the
+      first, ideal-camera solve never raises).
     - `opencv_flags`: for `model="opencv"` (OpenCV's camera, equal to
       `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
       `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`
-      (see `scheimflux.calibrate._opencv`); a list or `"rational,tilted"`.
+      (`OPENCV_FLAGS`); a list or `"rational,tilted"`.
+
+    **Returns:** a [`CameraCalibration`][]: the camera, the board poses, the final
+    solve's `Fit`, the reprojection RMS (px per coordinate), how it was initialised and
+    the frozen paths.
 
     The thick-lens model needs the pixel pitch (`obs.pixel_pitch_mm`, from the sensor's
     datasheet): without it a `ValueError` says so (`with_nominal(obs, pixel_pitch_mm=...)`

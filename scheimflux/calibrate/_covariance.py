@@ -268,10 +268,16 @@ def diagnostics(
     - `cal`: a `Calibration`, or a `CameraCalibration` together with the `obs` it was
       computed from (the covariance does not depend on the σ assumed for the corners:
       s² rescales it; a Huber `robust` setting is not known here and is ignored).
+    - `obs`: the observations of a `CameraCalibration` (ignored for a `Calibration`,
+      which keeps its data).
     - `block`: see [`residual_function`][].
     - `freeze`: analyse the same optimum with these parameter paths held fixed instead
       of the solve's own (e.g. `("camera.dx", "camera.dy")` to see what freeing f and
       the tilt would cost); the paths are relative to `SystemParams`.
+    - `top`: how many parameters to name per non-identifiable direction.
+
+    **Returns:** a [`Diagnostics`][] (σ, covariance, correlation, variance factor,
+    singular values, null directions and warnings of the free parameters).
     """
     fn, params, spec = residual_function(cal, block)
     if freeze is not None:

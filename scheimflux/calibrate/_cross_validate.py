@@ -72,6 +72,15 @@ def cross_validate(obs: Observations, **calibrate_kwargs) -> CrossValidation:
     pixel of the full set is reconstructed with both calibrations: on noise-free data
     from the model itself the two agree to rounding; the spread on real (noisy) data
     measures how well the calibration generalises to views it was not fitted to.
+
+    **Arguments:**
+    - `obs`: the observations, at least 6 views (3 per half) with the laser line on the
+      boards.
+    - `**calibrate_kwargs`: passed to [`calibrate`][] for both halves (`model`,
+      `distortion`, `joint`, `throw`, ...).
+
+    **Returns:** a [`CrossValidation`][] (point and plane differences, the halves and
+    both calibrations).
     """
     n = len(obs.views)
     halves = (list(range(0, n, 2)), list(range(1, n, 2)))

@@ -106,6 +106,16 @@ def fit_laser_plane(
     With the stripe points' noise `sigma_mm`, the plane's conditioning is checked first
     (`_gates.plane_conditioning`): stripes on fewer than 2 board poses, or on poses whose
     lines are collinear, raise `ValueError` instead of returning an undetermined plane.
+
+    **Arguments:**
+    - `camera`: the calibrated camera (e.g. `calibrate_camera(obs).camera`).
+    - `poses`: the board poses `T_c_b` of the views, batched `(V,)` (its `.poses`).
+    - `obs`: the observations whose views' `stripe_px` lie on the boards.
+    - `sigma_mm`: the stripe points' noise (mm); None: no conditioning check.
+
+    **Returns:** a [`PlaneFit`][]: the plane, the stripe points `(N, 3)` (camera frame,
+    mm), their signed distances from the plane (mm) and the conditioning (None without
+    `sigma_mm`).
     """
     pts = board_stripe_points(camera, poses, obs)
     cond = None

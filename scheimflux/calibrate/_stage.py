@@ -158,6 +158,22 @@ def calibrate_stage(
     Starts from [`initial_stage`][] and refines the table axis and the eccentricity by
     Levenberg–Marquardt on `gauge_residuals` (camera, laser plane and Δω held fixed,
     and the stage or eccentricity paths in `freeze`, e.g. `"stage.T_m_c.rotvec"`).
+
+    **Arguments:**
+    - `camera`: the calibrated camera.
+    - `plane`: the calibrated laser plane.
+    - `obs`: observations with a rotary-stage scan (`obs.stage`: Δω, the gauge radius
+      and the stripe pixels of every frame); its board views are not used.
+    - `sigma_stripe_mm`: the gauge points' noise within the laser plane (mm): the
+      residuals' weight.
+    - `freeze`: further stage or eccentricity paths held fixed (e.g.
+      `"stage.T_m_c.rotvec"`, `"eccentricity"`).
+    - `max_steps`: Levenberg–Marquardt steps.
+    - `throw`: raise `NotConvergedError` if the solve does not converge.
+
+    **Returns:** a [`StageCalibration`][] (stage, eccentricity, the solve, the gauge
+    RMS in mm and the closed-form start). `ValueError` for observations without a
+    stage scan or a scan that cannot determine the axis (see [`initial_stage`][]).
     """
     if obs.stage is None:
         raise ValueError('the observations hold no rotary-stage scan ("stage")')
