@@ -227,6 +227,37 @@ def _num(v) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def std_and_correlation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Standard deviations and the correlation matrix of a covariance `(p, p)` (ρ = 0
+    where a σ is 0, ρ = 1 on the diagonal)."""
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov / np.outer(std, std)
+    corr = np.where(np.outer(std, std) > 0, corr, 0.0)
+    np.fill_diagonal(corr, 1.0)
+    return std, corr
+
+
+def dominant_parameters(labels: list[str], v: np.ndarray, top: int) -> list:
+    """The `top` largest components (above 0.05) of a unit direction `v` in parameter
+    space, as `[(label, component), ...]`."""
+    order = np.argsort(-np.abs(v))[:top]
+    return [(labels[i], float(v[i])) for i in order if abs(v[i]) > 0.05]
+
+
+def correlation_warnings(labels: list[str], corr: np.ndarray) -> list[str]:
+    """One warning per pair of camera parameters correlated beyond `CORRELATION_WARN`."""
+    out = []
+    cam = [i for i, lab in enumerate(labels) if lab.startswith("camera.")]
+    for a_i, a in enumerate(cam):
+        for b in cam[a_i + 1 :]:
+            if abs(corr[a, b]) > CORRELATION_WARN:
+                out.append(
+                    f"strongly correlated: {labels[a]} and {labels[b]} (ρ = {corr[a, b]:+.4f})"
+                )
+    return out
+
+
 def covariance_from_jacobian(J, r, *, rtol: float = NULL_RTOL):
     """`(Σ, s², n, singular values, V)` from a residual Jacobian `J` and residuals `r`.
 
@@ -311,30 +342,18 @@ def diagnostics(
         cov, s2 = cov * (s2_cam / s2), s2_cam
     labels = parameter_labels(params, spec)
     x0, _, _ = split(params, spec)
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = cov / np.outer(std, std)
-    corr = np.where(np.outer(std, std) > 0, corr, 0.0)
-    np.fill_diagonal(corr, 1.0)
+    std, corr = std_and_correlation(cov)
     warnings, nulls = [], []
     smax = s[0] if s.size else 0.0
     for k in np.flatnonzero(s < NULL_RTOL * smax):
-        v = V[:, k]
-        order = np.argsort(-np.abs(v))[:top]
-        comps = [(labels[i], float(v[i])) for i in order if abs(v[i]) > 0.05]
+        comps = dominant_parameters(labels, V[:, k], top)
         nulls.append((float(s[k] / smax), comps))
         names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
         warnings.append(
             f"non-identifiable direction (singular value {s[k] / smax:.1e} × max): {names}; "
             "freeze one of these parameters"
         )
-    cam = [i for i, lab in enumerate(labels) if lab.startswith("camera.")]
-    for a_i, a in enumerate(cam):
-        for b in cam[a_i + 1 :]:
-            if abs(corr[a, b]) > CORRELATION_WARN:
-                warnings.append(
-                    f"strongly correlated: {labels[a]} and {labels[b]} (ρ = {corr[a, b]:+.4f})"
-                )
+    warnings.extend(correlation_warnings(labels, corr))
     cond = float(smax / s[-1]) if s.size and s[-1] > 0 else math.inf
     return Diagnostics(
         block="joint" if fn is not camera_residuals else "camera",

@@ -24,7 +24,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..reconstruct._reconstruct import intersect_ray_plane
-from ._covariance import CORRELATION_WARN, Diagnostics, diagnostics, residual_function
+from ._covariance import (
+    Diagnostics,
+    correlation_warnings,
+    diagnostics,
+    dominant_parameters,
+    residual_function,
+    std_and_correlation,
+)
 from ._result import Calibration
 from ._solve import RANK_RTOL, Fit, split
 
@@ -72,25 +79,14 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     # the board) scatter 4× less than the stated in-plane stripe σ, s² = 0.17, and Σ
     # scaled by it understated the spread of re-solved lengths 2.2× (Monte Carlo).
     cov = max(1.0, s2) * (d[:, None] * ((V * inv) @ V.T) * d[None, :])
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = np.where(np.outer(std, std) > 0, cov / np.outer(std, std), 0.0)
-    np.fill_diagonal(corr, 1.0)
+    std, corr = std_and_correlation(cov)
     warnings, nulls = [], []
     for k in np.flatnonzero(~keep):
-        v = V[:, k]
-        order = np.argsort(-np.abs(v))[:top]
-        comps = [(labels[i], float(v[i])) for i in order if abs(v[i]) > 0.05]
+        comps = dominant_parameters(labels, V[:, k], top)
         nulls.append((float(lam[k] / big), comps))
         names = ", ".join(f"{lab} ({c:+.2f})" for lab, c in comps)
         warnings.append(f"non-identifiable direction: {names}; freeze one of these parameters")
-    cam = [i for i, lab in enumerate(labels) if lab.startswith("camera.")]
-    for a_i, a in enumerate(cam):
-        for b in cam[a_i + 1 :]:
-            if abs(corr[a, b]) > CORRELATION_WARN:
-                warnings.append(
-                    f"strongly correlated: {labels[a]} and {labels[b]} (ρ = {corr[a, b]:+.4f})"
-                )
+    warnings.extend(correlation_warnings(labels, corr))
     x0, _, _ = split(fit.params, fit.free_mask)
     sv = np.sqrt(np.clip(lam, 0.0, None))
     return Diagnostics(
