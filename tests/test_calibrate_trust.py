@@ -20,7 +20,7 @@ from scheimflux.calibrate import (
     diagnostics,
     fit_diagnostics,
 )
-from scheimflux.cli._main import main
+from scheimflux.cli import main
 from scheimflux.io import Nominal, View, write_observations
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard

@@ -15,9 +15,14 @@ import pytest
 
 import scheimflux as sf
 from scheimflux.calibrate import calibrate, diagnostics
-from scheimflux.cli._main import main
-from scheimflux.io import Observations, View, write_observations
-from scheimflux.io._calibration import read_calibration, write_calibration
+from scheimflux.cli import main
+from scheimflux.io import (
+    Observations,
+    View,
+    read_calibration,
+    write_calibration,
+    write_observations,
+)
 
 W, H = 1600, 1200
 K_TRUE = np.array([[2600.0, 0.0, 803.0], [0.0, 2604.0, 598.0], [0.0, 0.0, 1.0]])

@@ -15,11 +15,16 @@ import numpy as np
 import pytest
 from test_calibration_file import _fit, _thick_lens, make_calibration
 
-from scheimflux.cli._main import main
-from scheimflux.io._calibration import read_calibration, write_calibration
-from scheimflux.io._observations import Observations, View, write_observations
-from scheimflux.io._pointcloud import read_ply
-from scheimflux.io._stripes import write_stripes
+from scheimflux.cli import main
+from scheimflux.io import (
+    Observations,
+    View,
+    read_calibration,
+    read_ply,
+    write_calibration,
+    write_observations,
+    write_stripes,
+)
 from scheimflux.reconstruct import Status, stripe_to_camera, stripe_to_measurement
 
 # the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
@@ -32,7 +37,7 @@ def _observations(stage=True) -> Observations:
     views = [
         View(rng.uniform(100, 1500, (12, 2)), rng.uniform(100, 1500, (5, 2))) for _ in range(3)
     ]
-    from scheimflux.io._observations import StageScan
+    from scheimflux.io import StageScan
 
     scan = StageScan(10.0, 17.5, [rng.uniform(100, 1500, (4, 2))]) if stage else None
     return Observations(1600, 1200, (0.0044, 0.0044), board, views, stage=scan)
@@ -308,9 +313,9 @@ def test_reconstruct_errors(tmp_path, cal_files, stripes_file, capsys, setup, me
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
-    from scheimflux.io._stripes import write_stripes as ws
+    from scheimflux.io import write_stripes as ws
     from scheimflux.simulate import paper_rig, simulate_observations
-    from scheimflux.targets._board import Checkerboard
+    from scheimflux.targets import Checkerboard
 
     folder = tmp_path_factory.mktemp("sim")
     obs, truth = simulate_observations(

@@ -20,10 +20,10 @@ from scheimflux.calibrate import (
     residual_map,
 )
 from scheimflux.calibrate._solve import split
-from scheimflux.io._observations import View
-from scheimflux.reconstruct._reconstruct import stripe_to_camera
+from scheimflux.io import View
+from scheimflux.reconstruct import stripe_to_camera
 from scheimflux.simulate import paper_rig, simulate_observations
-from scheimflux.targets._board import Checkerboard
+from scheimflux.targets import Checkerboard
 
 KW = dict(distortion="none", joint=False, throw=False)
 
@@ -159,7 +159,7 @@ def test_point_uncertainty_linear_propagation_vs_sampling(cal, diag_joint, strip
     samples = x0[idx] + jnp.asarray(rng.standard_normal((4000, len(idx))) @ L.T)
     import equinox as eqx
 
-    from scheimflux.reconstruct._reconstruct import intersect_ray_plane
+    from scheimflux.reconstruct import intersect_ray_plane
 
     def points(xs):
         p = eqx.combine(unravel(x0.at[idx].set(xs)), static)

@@ -25,9 +25,15 @@ from scheimflux.calibrate import (
     with_nominal,
 )
 from scheimflux.calibrate._opencv import opencv_flags_from_frozen, parse_opencv_flags
-from scheimflux.cli._main import main
-from scheimflux.io import Nominal, Observations, View, write_observations
-from scheimflux.io._calibration import read_calibration, write_calibration
+from scheimflux.cli import main
+from scheimflux.io import (
+    Nominal,
+    Observations,
+    View,
+    read_calibration,
+    write_calibration,
+    write_observations,
+)
 
 
 def _obs(pitch=(0.0044, 0.0044), nominal=None):

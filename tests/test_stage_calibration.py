@@ -25,11 +25,8 @@ from scheimflux.calibrate._model import _laser_points_safe  # private helpers un
 from scheimflux.calibrate._stage import _gauge_points
 from scheimflux.camera import ThickLensScheimpflug
 from scheimflux.geometry import LaserPlane
-from scheimflux.io import Observations
-from scheimflux.io._observations import StageScan
-from scheimflux.simulate._observe import nominal_of
-from scheimflux.simulate._rig import paper_rig
-from scheimflux.simulate._scenes import default_stage, gauge_scan
+from scheimflux.io import Observations, StageScan
+from scheimflux.simulate import default_stage, gauge_scan, nominal_of, paper_rig
 
 RADIUS = 17.5
 ECC = (0.05, -0.03)

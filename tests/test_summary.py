@@ -12,7 +12,7 @@ from test_cli_calibrate import _observations
 
 from scheimflux.calibrate import SystemParams, calibration_summary, format_summary
 from scheimflux.camera import RadialTangential
-from scheimflux.cli._main import main
+from scheimflux.cli import main
 from scheimflux.io import calibration_to_dict, write_observations
 
 LINE = re.compile(r"^  (\w+)\s+=\s+(\S+) (\S*)\s*(\(fixed\))?$")
