@@ -109,3 +109,22 @@ def test_calibration_term_against_sampling_the_parameters(chain):
     batch = eqx.filter_jit(jax.vmap(c["f"], in_axes=(0, None, None, None)))
     v = np.asarray(batch(jnp.asarray(thetas), uv, c["fi"], c["lab"]))[:, 0]
     assert 0.8 < np.std(v, ddof=1) / u < 1.25
+
+
+def test_measurement_frame_step_equals_camera_frame_and_ignores_the_stage(chain):
+    # The stage maps the camera frame rigidly (eq. 13): a distance between fitted lines is
+    # the same in both frames, for any frame index, and its derivative with respect to the
+    # stage's parameters vanishes (to rounding: ~1e-12 of the camera-frame derivatives).
+    c = chain
+    params = _Params(c["params"].camera, c["params"].plane, sf.paper_stage())
+    spec = free_spec(params, ("camera.dx", "camera.dy", "camera.f"))
+    labels = parameter_labels(params, spec)
+    f, theta0 = chain_function(Steps(), params, spec, np.arange(len(labels)), "measurement")
+    uv = jnp.asarray(c["prof"].px_true)
+    fi = jnp.full(len(uv), 3.0)
+    v_m, G = eqx.filter_jit(jax.value_and_grad(lambda t: f(t, uv, fi, c["lab"])[0]))(theta0)
+    v_c = float(c["f"](c["theta0"], uv, c["fi"], c["lab"])[0])
+    assert abs(float(v_m) - v_c) < 1e-11
+    G = np.asarray(G)
+    stage = [i for i, lab in enumerate(labels) if lab.startswith("stage.")]
+    assert stage and np.max(np.abs(G[stage])) < 1e-9 * np.max(np.abs(G))
