@@ -5,8 +5,8 @@ stripe, calibrates from scratch (the production solver) and measures the step wi
 `measure_stripes`. The stated standard uncertainty (calibration + stripe noise + fit
 residual) is compared with the spread of the repeats, and ±U (k = 2) with the spread
 around their mean. The bias of the mean against the ray-traced truth is printed, not
-asserted: the default thick-lens calibration holds f, φ, θ (and the pixel pitch) at
-their nominal values, whose own uncertainty is not in the calibration's covariance.
+asserted: model error (the real lens's distortion with `distortion="none"`, parameters
+held at nominal values) is not in the calibration's covariance (docs/metrology.md).
 """
 
 import dataclasses
