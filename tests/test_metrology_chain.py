@@ -92,6 +92,7 @@ def test_stripe_noise_uncertainty_against_monte_carlo(chain):
     assert np.mean(np.abs(v - v0) <= 2 * u) >= 0.91
 
 
+@pytest.mark.slow  # 142 s under load 15 on 2 cores (a second vmapped compile of the chain)
 def test_calibration_term_against_sampling_the_parameters(chain):
     c = chain
     uv = jnp.asarray(c["prof"].px_true)
@@ -111,6 +112,7 @@ def test_calibration_term_against_sampling_the_parameters(chain):
     assert 0.8 < np.std(v, ddof=1) / u < 1.25
 
 
+@pytest.mark.slow  # another compile of the chain (with the stage)
 def test_measurement_frame_step_equals_camera_frame_and_ignores_the_stage(chain):
     # The stage maps the camera frame rigidly (eq. 13): a distance between fitted lines is
     # the same in both frames, for any frame index, and its derivative with respect to the
