@@ -26,6 +26,8 @@ _SUBCOMMANDS = (
     "_extract",
     "_calibrate",
     "_reconstruct",
+    "_measure",
+    "_report",
     "_export",
 )
 

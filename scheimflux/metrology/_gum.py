@@ -1,0 +1,273 @@
+"""Measured values with their GUM uncertainty: calibration, stripe noise and fit residual.
+
+A measured value `v` (a radius, a step, a flatness) is a function of the fitted shape,
+which is a function of the reconstructed points, which are functions of the calibration
+parameters `θ` and the stripe pixels `p`:
+
+    v = V(fit(X(θ, p_1), …, X(θ, p_N)))
+
+Linear propagation (GUM, first order) with Jacobians by autodiff — through the
+reconstruction and, by the implicit function theorem, through the fit:
+
+- **calibration**: `C_cal = G_θ Σ_θ G_θᵀ`, `G_θ = ∂v/∂θ` — one Jacobian of the whole
+  chain, so the covariance between all points (what moves every point alike, like the
+  camera datum, cancels) is exact, without forming the `3N × 3N` point covariance.
+  `Σ_θ` is the marginal covariance of the free camera, laser-plane (and stage)
+  parameters of the joint calibration (board poses marginalised).
+- **stripe noise**: `C_px = σ_px² G_p G_pᵀ`, `G_p = ∂v/∂p`, each pixel coordinate
+  independent with σ_px.
+- **fit residual**: the scatter of the orthogonal residuals beyond what the stripe noise
+  explains (form deviation, unmodelled effects):
+  `C_fit = max(0, s² − s²_px) Σ_i (N_i g_i)(N_i g_i)ᵀ` with `s² = |r|² / (M − p)`,
+  `s²_px` the residual variance the stripe noise predicts, `N_i = ∂r_i/∂x_i` and
+  `g_i = ∂v/∂x_i`. For a fitted parameter this is the classical `s² ∇v (JᵀJ)⁻¹ ∇vᵀ`.
+  Without σ_px (points without pixels, or σ_px not given) the stripe noise is in the
+  residuals, and this term carries it.
+
+`U = k u` with k = 2 (≈ 95 % for a normal distribution with many degrees of freedom).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._lsq import fit_shape, parameter_jacobian, residual_normals
+from ._shapes import AbstractShape
+
+__all__ = ["Measurement", "measure_points"]
+
+COVERAGE_FACTOR = 2.0
+# Relative eigenvalue of the fit's scaled JᵀJ below which the geometry is degenerate (the
+# implicit derivative and the fit's covariance do not exist).
+FIT_RANK_RTOL = 1e-12
+SOURCES = ("calibration", "stripe_noise", "fit_residual")
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """Measured values with uncertainty and budget.
+
+    **Fields:**
+    - `kind`: the shape (`"cylinder"`, `"plane"`, …); `names`: the values' names.
+    - `values` `(K,)` (mm); `covariance` `(K, K)` (mm², all sources; off-diagonal terms
+      are what ratios and differences of the values need).
+    - `budget`: per source in `SOURCES`, the standard uncertainty of each value `(K,)`,
+      or None where the source was not evaluated (see `notes`).
+    - `coverage_factor`: k (2).
+    - `residuals` `(N, m)`: the fit's orthogonal residuals (mm); `residual_stats`: RMS,
+      peak-to-valley, max |r|, the variance factor s² and the stripe-noise prediction.
+    - `n_points`, `n_params`; `geometry`: the fitted shape as numbers (axis, normal, …).
+    - `sensitivity`: `{"labels": [...], "d_values": (K, q)}`: `∂v/∂θ` for the calibration
+      parameters (None without a calibration).
+    - `notes`: what the budget includes and what it does not.
+    """
+
+    kind: str
+    names: tuple
+    values: np.ndarray
+    covariance: np.ndarray
+    budget: dict
+    coverage_factor: float
+    residuals: np.ndarray
+    residual_stats: dict
+    n_points: int
+    n_params: int
+    geometry: dict
+    sensitivity: dict | None
+    notes: tuple
+
+    @property
+    def std(self) -> np.ndarray:
+        """Combined standard uncertainty u of each value (mm)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    @property
+    def U(self) -> np.ndarray:
+        """Expanded uncertainty `k u` (mm)."""
+        return self.coverage_factor * self.std
+
+    def summary(self) -> str:
+        """A few lines: each value ± U (k = 2) with its budget, and the residuals."""
+        lines = [f"{self.kind} fit: {self.n_points} points, {self.n_params} parameters"]
+        for k, name in enumerate(self.names):
+            lines.append(
+                f"  {name:<12} {self.values[k]:.6f} mm ± {self.U[k] * 1e3:.3f} µm "
+                f"(U, k = {self.coverage_factor:g})"
+            )
+            for src in SOURCES:
+                b = self.budget.get(src)
+                text = "not included" if b is None else f"u = {b[k] * 1e3:.3f} µm"
+                lines.append(f"    {src.replace('_', ' '):<14} {text}")
+        st = self.residual_stats
+        if self.n_params:
+            lines.append(
+                f"  residuals: RMS {st['rms'] * 1e3:.3f} µm, peak-to-valley "
+                f"{st['peak_to_valley'] * 1e3:.3f} µm, max |r| {st['max_abs'] * 1e3:.3f} µm"
+            )
+        lines.extend(f"  note: {n}" for n in self.notes)
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (`"format": "scheimflux.measurement/1"`, lengths in mm)."""
+
+        def num(v):
+            v = float(v)
+            return v if math.isfinite(v) else None
+
+        out = {
+            "format": "scheimflux.measurement/1",
+            "kind": self.kind,
+            "unit": "mm",
+            "coverage_factor": self.coverage_factor,
+            "values": {
+                name: {
+                    "value": num(self.values[k]),
+                    "standard_uncertainty": num(self.std[k]),
+                    "U": num(self.U[k]),
+                    "budget": {
+                        src: None if self.budget.get(src) is None else num(self.budget[src][k])
+                        for src in SOURCES
+                    },
+                }
+                for k, name in enumerate(self.names)
+            },
+            "covariance": [[num(v) for v in row] for row in self.covariance],
+            "residuals": {key: num(v) for key, v in self.residual_stats.items()},
+            "n_points": self.n_points,
+            "n_params": self.n_params,
+            "geometry": {k: [num(x) for x in np.ravel(v)] for k, v in self.geometry.items()},
+            "notes": list(self.notes),
+        }
+        if self.sensitivity is not None:
+            out["sensitivity"] = {
+                "labels": list(self.sensitivity["labels"]),
+                "d_values": [[num(v) for v in row] for row in self.sensitivity["d_values"]],
+            }
+        return out
+
+
+@eqx.filter_jit
+def _point_terms(shape, X, labels):
+    """The fit, `∂v/∂X` `(K, N, 3)`, the residual normals and `∂r/∂y`."""
+    fit = fit_shape(shape, X, labels)
+    gX = jax.jacrev(lambda X: fit_shape(shape, X, labels).values)(X)
+    if shape.n_params() == 0:  # static: no fit, no residuals
+        return fit, gX, jnp.zeros((X.shape[0], 0, 3), X.dtype), jnp.zeros((0, 0), X.dtype)
+    normals = residual_normals(fit, X, labels)
+    J = parameter_jacobian(fit, X, labels)
+    return fit, gX, normals, J
+
+
+def _check_labels(shape, n, labels):
+    if labels is None:
+        return np.zeros(n, np.int32)
+    lab = np.asarray(labels)
+    if lab.shape != (n,):
+        raise ValueError(f"labels must have shape ({n},), got {lab.shape}")
+    if not np.issubdtype(lab.dtype, np.integer) and lab.dtype != bool:
+        raise ValueError(f"labels must be integers, got dtype {lab.dtype}")
+    return lab.astype(np.int32)
+
+
+def _checked_fit(shape, X, labels):
+    """Run the fit terms eagerly and refuse a fit that did not converge or is singular."""
+    fit, gX, normals, J = _point_terms(shape, jnp.asarray(X), jnp.asarray(labels))
+    if shape.n_params():
+        if not bool(fit.result == optx.RESULTS.successful):
+            raise ValueError(
+                f"{shape.kind} fit did not converge in {int(fit.steps)} steps: "
+                "no value reported"
+            )
+        J = np.asarray(J)
+        d = np.sqrt(np.sum(J * J, axis=0))
+        lam = np.linalg.eigvalsh((J / np.where(d > 0, d, 1.0)).T @ (J / np.where(d > 0, d, 1.0)))
+        if np.any(d == 0) or lam[0] <= FIT_RANK_RTOL * lam[-1]:
+            raise ValueError(
+                f"{shape.kind} fit: degenerate geometry (the points do not determine the "
+                "shape's parameters): no value reported"
+            )
+    values = np.asarray(fit.values)
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{shape.kind} fit gave a non-finite value: no value reported")
+    return fit, np.asarray(gX), np.asarray(normals)
+
+
+def _fit_stats(shape, fit, normals, gX, s2_px):
+    """`(C_fit (K, K), stats)` for the fit-residual term."""
+    r = np.asarray(fit.residuals)
+    M, p = r.size, shape.n_params()
+    K = len(shape.names)
+    if p == 0:
+        return np.zeros((K, K)), {}
+    s2 = float(np.sum(r * r)) / (M - p) if M > p else math.inf
+    P = np.einsum("nmj,knj->knm", normals, gX)  # (K, N, m): ∂v/∂r_i scaled by the normals
+    raw = np.einsum("knm,lnm->kl", P, P)
+    excess = max(0.0, s2 - s2_px) if math.isfinite(s2) else math.inf
+    stats = {
+        "rms": float(np.sqrt(np.mean(r * r))),
+        "peak_to_valley": float(np.max(r) - np.min(r)),
+        "max_abs": float(np.max(np.abs(r))),
+        "variance_factor": s2,
+        "stripe_noise_variance": s2_px,
+    }
+    return excess * raw, stats
+
+
+def _sd(C):
+    return np.sqrt(np.clip(np.diag(C), 0.0, None))
+
+
+def measure_points(points, shape: AbstractShape, *, labels=None) -> Measurement:
+    """Fit `shape` to reconstructed points and state the value with its fit uncertainty.
+
+    Points alone carry no calibration or pixel information: the budget holds the fit
+    residual only (which includes the points' own noise); calibration and stripe noise
+    are reported as not included. Use [`measure_stripes`][] for the full budget.
+
+    **Arguments:**
+    - `points`: `(N, 3)` (mm), finite.
+    - `shape`: the model ([`Cylinder`][], [`Plane`][], …).
+    - `labels`: `(N,)` face of each point for [`Steps`][].
+
+    **Returns:** a [`Measurement`][]. **Raises:** `ValueError` (one line) for too few
+    points, degenerate geometry, a fit that did not converge.
+    """
+    X = np.asarray(points, dtype=np.float64)
+    shape.check(X, _check_labels(shape, len(X) if X.ndim == 2 else 0, labels))
+    lab = _check_labels(shape, len(X), labels)
+    fit, gX, normals = _checked_fit(shape, X, lab)
+    C_fit, stats = _fit_stats(shape, fit, normals, gX, 0.0)
+    notes = (
+        "calibration and stripe noise not included (points only): measure from the "
+        "calibration and the stripes for the full budget",
+    )
+    return _measurement(shape, fit, {"fit_residual": C_fit}, stats, None, notes)
+
+
+def _measurement(shape, fit, terms, stats, sensitivity, notes) -> Measurement:
+    K = len(shape.names)
+    C = sum(terms.values(), np.zeros((K, K)))
+    if shape.n_params() == 0:
+        terms.pop("fit_residual", None)
+    return Measurement(
+        kind=shape.kind,
+        names=tuple(shape.names),
+        values=np.asarray(fit.values, dtype=np.float64),
+        covariance=C,
+        budget={src: (_sd(terms[src]) if src in terms else None) for src in SOURCES},
+        coverage_factor=COVERAGE_FACTOR,
+        residuals=np.asarray(fit.residuals),
+        residual_stats=stats,
+        n_points=int(np.shape(fit.residuals)[0]),
+        n_params=shape.n_params(),
+        geometry={k: np.asarray(v) for k, v in shape.describe(fit.params, fit.frame).items()},
+        sensitivity=sensitivity,
+        notes=tuple(notes),
+    )

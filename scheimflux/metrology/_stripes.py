@@ -1,0 +1,198 @@
+"""Measure from stripe pixels with a calibration: the whole chain pixel → 3-D → fit → value,
+differentiated end to end (see `_gum.py` for the propagation)."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..calibrate import diagnostics as calibration_diagnostics, residual_function
+from ..reconstruct import intersect_ray_plane
+from ._gum import Measurement, _check_labels, _checked_fit, _fit_stats, _measurement
+from ._shapes import AbstractShape
+
+__all__ = ["chain_function", "measure_stripes"]
+
+FRAMES = ("camera", "measurement")
+
+
+def _reconstruct_one(params, uv, i, frame):
+    ray, ok = params.camera.backproject_one_with_mask(uv)
+    X, status = intersect_ray_plane(ray, params.plane, ok)
+    if frame == "measurement":
+        X = params.stage.to_measurement(X, i)
+    return X, status
+
+
+def chain_function(shape: AbstractShape, params, spec, idx, frame: str = "camera"):
+    """The measured values as a JAX function of calibration parameters and pixels.
+
+    **Arguments:**
+    - `params`, `spec`: a calibration's parameter pytree and free-parameter filter spec
+      (`scheimflux.calibrate.residual_function(cal, "joint")[1:]`).
+    - `idx`: positions, in the flattened free parameters, of those to differentiate
+      (e.g. `diagnostics(cal).select(("camera.", "plane."))`).
+    - `frame`: `"camera"` or `"measurement"` (rotary stage, frame index per pixel).
+
+    **Returns:** `(f, theta0)`: `f(theta, uv, frame_index, labels) -> values (K,)` with
+    `theta` `(q,)`, `uv` `(N, 2)`, `frame_index` `(N,)`, `labels` `(N,)`; and `theta0`,
+    the calibration's values of `theta`. `f` is pure: jit, grad, jacrev, vmap apply.
+    """
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be 'camera' or 'measurement', got {frame!r}")
+    from ._lsq import fit_shape
+
+    free, static = eqx.partition(params, spec)
+    x0, unravel = ravel_pytree(free)
+    idx = jnp.asarray(idx, dtype=jnp.int32)
+
+    def f(theta, uv, frame_index, labels):
+        prm = eqx.combine(unravel(x0.at[idx].set(theta)), static)
+        X, _ = jax.vmap(lambda p, i: _reconstruct_one(prm, p, i, frame))(uv, frame_index)
+        return fit_shape(shape, X, labels).values
+
+    return f, x0[idx]
+
+
+@eqx.filter_jit
+def _chain_terms(shape, free, static, idx, uv, fi, labels, frame):
+    x0, unravel = ravel_pytree(free)
+    prm0 = eqx.combine(free, static)
+
+    def points(theta, uv):
+        prm = eqx.combine(unravel(x0.at[idx].set(theta)), static)
+        return jax.vmap(lambda p, i: _reconstruct_one(prm, p, i, frame)[0])(uv, fi)
+
+    from ._lsq import fit_shape
+
+    def values(theta, uv):
+        return fit_shape(shape, points(theta, uv), labels).values
+
+    theta = x0[idx]
+    G_theta, G_uv = jax.jacrev(values, argnums=(0, 1))(theta, uv)
+    X, status = jax.vmap(lambda p, i: _reconstruct_one(prm0, p, i, frame))(uv, fi)
+    J_uv = jax.vmap(jax.jacfwd(lambda p, i: _reconstruct_one(prm0, p, i, frame)[0]))(uv, fi)
+    return X, status, G_theta, G_uv, J_uv
+
+
+@eqx.filter_jit
+def _status(params, uv, fi, frame):
+    return jax.vmap(lambda p, i: _reconstruct_one(params, p, i, frame))(uv, fi)
+
+
+def _joint_covariance(cal, diag, source):
+    if diag is None:
+        try:
+            diag = calibration_diagnostics(cal, block="joint")
+        except ValueError as err:
+            raise ValueError(
+                f"{source} has no parameter covariance ({err}); the calibration term needs it"
+            ) from None
+    elif diag.block != "joint":
+        raise ValueError("measure_stripes needs the joint diagnostics (diagnostics(cal, "
+                         "block='joint'))")
+    return diag
+
+
+def measure_stripes(
+    cal,
+    uv,
+    shape: AbstractShape,
+    *,
+    frame: str = "camera",
+    frame_index=None,
+    labels=None,
+    sigma_px: float | None = None,
+    diag=None,
+    source: str = "the calibration",
+) -> Measurement:
+    """Measure a shape from stripe pixels with the full GUM budget.
+
+    Reconstructs the pixels with the calibration (camera frame, or the measurement frame
+    through the rotary stage), fits `shape`, and propagates the calibration's covariance,
+    the pixels' noise and the fit residual to the values (see `_gum.py`), with the
+    covariance between all points.
+
+    **Arguments:**
+    - `cal`: a `Calibration` with a laser plane, and its observations (a calibration read
+      from a file needs `read_calibration(path, observations=OBS)`: the covariance is
+      computed from them).
+    - `uv`: stripe pixels `(N, 2)`; pixels that give no point (NaN, ray misses the plane)
+      are left out, with their labels.
+    - `frame`, `frame_index`: `"measurement"` needs a stage and the frame number of each
+      pixel (`(N,)` or a scalar).
+    - `labels`: `(N,)` face per pixel for [`Steps`][].
+    - `sigma_px`: the stripe centres' noise (px per coordinate); None: not evaluated (the
+      fit residual term then carries it).
+    - `diag`: precomputed `diagnostics(cal, block="joint")`.
+
+    **Returns:** a [`Measurement`][] with `sensitivity` (∂values/∂θ). **Raises:**
+    `ValueError` (one line) for a calibration without laser plane, stage or covariance,
+    too few valid points, degenerate geometry or a fit that did not converge.
+    """
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be 'camera' or 'measurement', got {frame!r}")
+    if sigma_px is not None and not (math.isfinite(sigma_px) and sigma_px >= 0):
+        raise ValueError(f"sigma_px must be a number >= 0, got {sigma_px}")
+    if cal.params.plane is None:
+        raise ValueError(f"{source} has no laser plane: nothing to reconstruct")
+    if frame == "measurement" and cal.params.stage is None:
+        raise ValueError(f"{source} has no rotary stage: no measurement frame")
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must have shape (N, 2), got {uv.shape}")
+    n = len(uv)
+    lab = _check_labels(shape, n, labels)
+    if frame_index is None:
+        if frame == "measurement":
+            raise ValueError("frame='measurement' needs frame_index (the frame of each pixel)")
+        frame_index = 0
+    fi = np.broadcast_to(np.asarray(frame_index, dtype=np.float64), (n,)).copy()
+    diag = _joint_covariance(cal, diag, source)
+    _, params, spec = residual_function(cal, "joint")
+    prefixes = ("camera.", "plane.") + (("stage.",) if frame == "measurement" else ())
+    idx = diag.select(prefixes)
+    free, static = eqx.partition(params, spec)
+    if ravel_pytree(free)[0].size != len(diag.labels):
+        raise ValueError("the diagnostics do not match the calibration's free parameters")
+
+    _, status = _status(params, jnp.asarray(uv), jnp.asarray(fi), frame)
+    keep = np.asarray(status) == 0
+    if not keep.any():
+        raise ValueError(f"no stripe pixel of {n} gives a point with {source}")
+    uv, fi, lab = uv[keep], fi[keep], lab[keep]
+    X, _, G_theta, G_uv, J_uv = _chain_terms(
+        shape, free, static, jnp.asarray(idx, jnp.int32), jnp.asarray(uv), jnp.asarray(fi),
+        jnp.asarray(lab), frame,
+    )
+    X = np.asarray(X)
+    shape.check(X, lab)
+    fit, gX, normals = _checked_fit(shape, X, lab)
+
+    G_theta, G_uv, J_uv = np.asarray(G_theta), np.asarray(G_uv), np.asarray(J_uv)
+    S = diag.covariance[np.ix_(idx, idx)]
+    terms = {"calibration": G_theta @ S @ G_theta.T}
+    notes = []
+    s2_px = 0.0
+    if sigma_px is not None:
+        terms["stripe_noise"] = sigma_px**2 * np.einsum("kni,lni->kl", G_uv, G_uv)
+        if shape.n_params():
+            rj = np.einsum("nmj,nji->nmi", normals, J_uv)  # ∂r/∂uv per point
+            s2_px = sigma_px**2 * float(np.mean(np.sum(rj * rj, axis=2)))
+    else:
+        notes.append("stripe noise not evaluated (no sigma_px): the fit residual carries it")
+    C_fit, stats = _fit_stats(shape, fit, normals, gX, s2_px)
+    terms["fit_residual"] = C_fit
+    if n - int(keep.sum()):
+        notes.append(f"{n - int(keep.sum())} of {n} pixels gave no point and were left out")
+    notes.append(
+        f"calibration: covariance of {len(idx)} {'/'.join(p.rstrip('.') for p in prefixes)} "
+        f"parameters ({diag.block} solve, variance factor {diag.variance_factor:.3g})"
+    )
+    sens = {"labels": [diag.labels[i] for i in idx], "d_values": G_theta}
+    return _measurement(shape, fit, terms, stats, sens, notes)

@@ -1,0 +1,270 @@
+"""A calibration report people read: one self-contained HTML page (PNG images embedded as
+base64), the same PNGs beside it.
+
+Sections: the camera parameters ± σ, the camera parameters' correlation matrix,
+identifiability warnings, the corner residuals over the sensor and per view (with the
+observations), the laser plane and the stage, and views of a point cloud.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+import os
+
+import numpy as np
+
+__all__ = ["Report", "build_report", "write_report"]
+
+
+def _matplotlib():
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise ImportError(
+            "the report needs matplotlib: pip install 'scheimflux[plot]'"
+        ) from None
+    return Figure, FigureCanvasAgg
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "—"
+    return f"{v:.9g}" if isinstance(v, (int, float)) else html.escape(str(v))
+
+
+class Report:
+    """The report's pieces: `sections` (title, HTML) and `images` (name → PNG bytes)."""
+
+    def __init__(self, title: str):
+        self.title = title
+        self.sections: list[tuple[str, str]] = []
+        self.images: dict[str, bytes] = {}
+
+    def add(self, title: str, body: str) -> None:
+        self.sections.append((title, body))
+
+    def image(self, name: str, png: bytes, caption: str) -> str:
+        self.images[name] = png
+        data = base64.b64encode(png).decode("ascii")
+        return (
+            f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+        )
+
+    def html(self) -> str:
+        body = "\n".join(
+            f"<section><h2>{html.escape(t)}</h2>\n{b}\n</section>" for t, b in self.sections
+        )
+        return (
+            "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
+            f"<title>{html.escape(self.title)}</title><style>"
+            "body{font-family:sans-serif;max-width:1100px;margin:auto}"
+            "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 8px;"
+            "text-align:right}img{max-width:100%}.warn{color:#a30}"
+            f"</style></head><body><h1>{html.escape(self.title)}</h1>\n{body}\n"
+            "</body></html>\n"
+        )
+
+
+def _table(rows, header) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _parameters(rep: Report, doc: dict, diag) -> None:
+    cam = doc.get("camera", {})
+    std = (diag.get("std") or {}) if isinstance(diag, dict) else {}
+    rows = []
+    for name, entry in cam.items():
+        if not isinstance(entry, dict) or "value" not in entry:
+            continue
+        s = std.get(f"camera.{name}")
+        unit = entry.get("unit", "")
+        if s is not None and unit == "deg":
+            s = math.degrees(s)
+        rows.append([html.escape(name), _fmt(entry["value"]), _fmt(s) if s is not None
+                     else "fixed / not given", html.escape(unit)])
+    rep.add(
+        f"Camera ({html.escape(str(doc.get('model', '?')))})",
+        _table(rows, ["parameter", "value", "± σ", "unit"]),
+    )
+
+
+def _correlation(rep: Report, diag) -> None:
+    cc = diag.get("camera_correlation") if isinstance(diag, dict) else None
+    if not cc or not cc.get("labels"):
+        rep.add("Correlation", "<p>The file holds no correlation matrix (calibrate writes "
+                "it with the diagnostics).</p>")
+        return
+    Figure, Canvas = _matplotlib()
+    labels = [lab.replace("camera.", "") for lab in cc["labels"]]
+    M = np.array([[np.nan if v is None else v for v in row] for row in cc["matrix"]], float)
+    fig = Figure(figsize=(1.0 + 0.6 * len(labels), 0.6 + 0.6 * len(labels)))
+    Canvas(fig)
+    ax = fig.subplots()
+    im = ax.imshow(M, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(len(labels)), labels, rotation=45)
+    ax.set_yticks(range(len(labels)), labels)
+    for i in range(len(labels)):
+        for j in range(len(labels)):
+            if np.isfinite(M[i, j]):
+                ax.text(j, i, f"{M[i, j]:+.2f}", ha="center", va="center", fontsize=7)
+    fig.colorbar(im, ax=ax)
+    fig.tight_layout()
+    rep.add("Correlation of the camera parameters",
+            rep.image("correlation.png", _png(fig), "correlation matrix"))
+
+
+def _warnings(rep: Report, diag) -> None:
+    warns = list(diag.get("warnings", []) or []) if isinstance(diag, dict) else []
+    body = ("<ul>" + "".join(f'<li class="warn">{html.escape(str(w))}</li>' for w in warns)
+            + "</ul>") if warns else "<p>No identifiability warning.</p>"
+    rep.add("Identifiability", body)
+
+
+def _residuals(rep: Report, cal) -> None:
+    if cal is None:
+        rep.add("Residuals", "<p>Residual maps need the observations the calibration was "
+                "computed from (--observations).</p>")
+        return
+    from ..calibrate import residual_map
+
+    Figure, Canvas = _matplotlib()
+    size = getattr(cal, "sensor_size", None)
+    mean_u, mean_v, rms, counts = residual_map(cal, size=size)
+    fig = Figure(figsize=(7, 4.5))
+    Canvas(fig)
+    ax = fig.subplots()
+    im = ax.imshow(np.ma.masked_invalid(rms), cmap="viridis")
+    fig.colorbar(im, ax=ax, label="RMS corner residual (px)")
+    ax.set_title("corner residuals over the sensor (binned)")
+    parts = [rep.image("residuals_sensor.png", _png(fig), "residuals over the sensor")]
+    err, w, uv = _corner_errors(cal)
+    n = err.shape[0]
+    cols = min(n, 4)
+    fig = Figure(figsize=(3.2 * cols, 2.6 * math.ceil(n / cols)))
+    Canvas(fig)
+    axes = np.atleast_1d(fig.subplots(math.ceil(n / cols), cols)).ravel()
+    for v in range(n):
+        ok = w[v]
+        axes[v].quiver(uv[v, ok, 0], uv[v, ok, 1], err[v, ok, 0], err[v, ok, 1],
+                       angles="xy", color="tab:blue")
+        axes[v].invert_yaxis()
+        rms_v = float(np.sqrt(np.mean(err[v, ok] ** 2))) if ok.any() else math.nan
+        axes[v].set_title(f"view {v}: RMS {rms_v:.3g} px", fontsize=8)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    parts.append(rep.image("residuals_views.png", _png(fig), "residual vectors per view"))
+    rep.add("Corner residuals", "\n".join(parts))
+
+
+def _corner_errors(cal):
+    """Reprojection errors per view `(V, M, 2)` px, the detected mask and the pixels."""
+    import jax
+
+    data, params = cal.data, cal.params
+
+    def one_view(pose, uv_obs):
+        uv, _ = jax.vmap(params.camera.project_one)(pose.apply(data.board))
+        return uv - uv_obs
+
+    err = np.asarray(jax.jit(jax.vmap(one_view))(params.board_poses, data.corners))
+    return err, np.asarray(data.corner_w) > 0, np.asarray(data.corners)
+
+
+def _plane_stage(rep: Report, doc: dict) -> None:
+    rows = []
+    lp = doc.get("laser_plane")
+    if isinstance(lp, dict):
+        for k in ("n_per_mm", "unit_normal", "distance_mm"):
+            if k in lp:
+                rows.append([html.escape(f"laser plane {k}"), _fmt_vec(lp[k])])
+    st = doc.get("stage")
+    if isinstance(st, dict):
+        for k, v in st.items():
+            rows.append([html.escape(f"stage {k}"), _fmt_vec(v)])
+    rep.add("Laser plane and stage", _table(rows, ["quantity", "value"]) if rows else
+            "<p>No laser plane or stage in this calibration.</p>")
+
+
+def _fmt_vec(v) -> str:
+    if isinstance(v, dict) and "value" in v:
+        return _fmt_vec(v["value"]) + " " + html.escape(str(v.get("unit", "")))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt_vec(x) for x in v) + "]"
+    return _fmt(v)
+
+
+def _points(rep: Report, points: np.ndarray, name: str) -> None:
+    Figure, Canvas = _matplotlib()
+    fig = Figure(figsize=(12, 4))
+    Canvas(fig)
+    axes = fig.subplots(1, 3)
+    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+        ax.plot(points[:, i], points[:, j], ",", color="tab:blue")
+        ax.set_xlabel("xyz"[i] + " (mm)")
+        ax.set_ylabel("xyz"[j] + " (mm)")
+        ax.set_aspect("equal", adjustable="datalim")
+    fig.tight_layout()
+    rep.add(f"Points: {html.escape(name)} ({len(points)} points)",
+            rep.image("points.png", _png(fig), "point cloud, three projections"))
+
+
+def build_report(calibration: str, *, observations: str | None = None,
+                 points: str | None = None) -> Report:
+    """Build the report of a calibration file (with its observations: residual maps).
+
+    **Raises:** `ImportError` without matplotlib; `ValueError` / `FileNotFoundError`
+    for unreadable inputs.
+    """
+    _matplotlib()
+    import json
+
+    from ..io import read_calibration, read_observations
+
+    cal = None
+    if observations is not None:
+        cal = read_calibration(calibration, observations=read_observations(observations))
+    else:
+        read_calibration(calibration)  # validates the file
+    with open(calibration, encoding="utf-8") as fh:
+        doc = json.load(fh)
+    diag = doc.get("diagnostics", {})
+    rep = Report(f"scheimflux calibration report: {os.path.basename(calibration)}")
+    _parameters(rep, doc, diag)
+    _correlation(rep, diag)
+    _warnings(rep, diag)
+    _residuals(rep, cal)
+    _plane_stage(rep, doc)
+    if points is not None:
+        from ..metrology._workflow import read_points
+
+        pts, _ = read_points(points)
+        _points(rep, pts, os.path.basename(points))
+    return rep
+
+
+def write_report(rep: Report, out: str, *, png_dir: str | None = None,
+                 overwrite: bool = False) -> list[str]:
+    """Write the HTML (and the PNGs into `png_dir`); returns the paths written."""
+    from ..io._files import check_writable, write_atomic
+
+    targets = [out] + ([os.path.join(png_dir, n) for n in rep.images] if png_dir else [])
+    for path in targets:
+        check_writable(path, overwrite=overwrite)
+    write_atomic(out, rep.html(), overwrite=overwrite)
+    for name, png in rep.images.items() if png_dir else ():
+        write_atomic(os.path.join(png_dir, name), png, overwrite=overwrite)
+    return targets
