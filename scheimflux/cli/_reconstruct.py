@@ -27,14 +27,6 @@ import numpy as np
 
 from ._common import CLIError, check_output
 
-_REASONS = {
-    1: "invalid pixel (not finite, or undistortion failed)",
-    2: "ray parallel to the laser plane",
-    3: "intersection behind the camera",
-    4: "degenerate laser plane (not finite, or through the camera centre)",
-    5: "outside the sensor",
-}
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -85,12 +77,11 @@ def reconstruct_frames(
 
 def run(args) -> int:
     from ..io._calibration import read_calibration
-    from ..io._pointcloud import open_points_writer, points_extension
-    from ..io._stripes import iter_stripes
-    from ..reconstruct._stream import iter_reconstruct
+    from ..io._pointcloud import points_extension
+    from ..reconstruct._scan import REASONS, ScanError, reconstruct_scan
     from ._common import progress
 
-    ext = points_extension(args.out)
+    points_extension(args.out)
     if args.chunk_frames < 1:
         raise CLIError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
     out = check_output(args.out, overwrite=args.overwrite)
@@ -105,55 +96,28 @@ def run(args) -> int:
             f"--frame measurement needs a calibrated rotary stage; {args.calibration} has "
             "none (calibrate with a gauge scan in the observations, or use --frame camera)"
         )
-    # .npy rows are as long as the longest frame: one cheap first pass finds it.
-    width = max([len(f) for f in iter_stripes(args.stripes)] + [0]) if ext == ".npy" else None
-    sensor = getattr(loaded, "sensor_size", None)
-    stage = loaded.stage if args.frame == "measurement" else None
-    counts = np.zeros(len(_REASONS) + 1, np.int64)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    n_frames = 0
-    with open_points_writer(out, args.frame, overwrite=args.overwrite, width=width) as writer:
-        chunks = iter_reconstruct(
-            loaded.camera,
-            loaded.plane,
-            iter_stripes(args.stripes),
-            stage=stage,
-            sensor_size=sensor,
+    try:
+        s = reconstruct_scan(
+            loaded,
+            args.stripes,
+            out,
+            frame=args.frame,
             chunk_frames=args.chunk_frames,
+            overwrite=args.overwrite,
+            progress=lambda it: progress(it, "reconstruct", f"x{args.chunk_frames} frames"),
         )
-        for points, status in progress(chunks, "reconstruct", f"x{args.chunk_frames} frames"):
-            writer.add(points)
-            n_frames += len(points)
-            codes = np.concatenate([np.zeros(0, np.int8)] + status)
-            counts += np.bincount(codes, minlength=len(counts))[: len(counts)]
-            valid = np.concatenate([np.zeros((0, 3))] + [p[s == 0] for p, s in zip(points, status)])
-            if len(valid):
-                lo, hi = np.minimum(lo, valid.min(axis=0)), np.maximum(hi, valid.max(axis=0))
-        # Refusals below leave the `with` by an exception: the temporary file is removed,
-        # nothing is written.
-        if n_frames == 0:
-            raise CLIError(f"{args.stripes} has no frames: nothing to reconstruct")
-        n_pixels, n_valid = int(counts.sum()), int(counts[0])
-        reasons = [(int(counts[c]), reason) for c, reason in _REASONS.items()]
-        if n_valid == 0:
-            why = "; ".join(f"{k} {reason}" for k, reason in reasons if k) or "no stripe pixels"
-            raise CLIError(
-                f"no valid point from {n_pixels} stripe pixels in {n_frames} frames "
-                f"({why}); nothing written"
-            )
+    except ScanError as err:
+        raise CLIError(str(err)) from None
 
-    print(
-        f"reconstructed {n_frames} frames, {n_pixels} stripe pixels "
-        f"({loaded.model}, {args.frame} frame)"
-    )
-    print(f"  valid points  : {n_valid}")
-    print(f"  invalid points: {n_pixels - n_valid}")
-    for k, reason in reasons:
-        if k:
-            print(f"    {k:>8}  {reason}")
-    if sensor is None:
+    print(f"reconstructed {s.frames} frames, {s.pixels} stripe pixels ({s.model}, {s.frame} frame)")
+    print(f"  valid points  : {s.valid}")
+    print(f"  invalid points: {s.pixels - s.valid}")
+    for c, reason in REASONS.items():
+        if s.counts[c]:
+            print(f"    {s.counts[c]:>8}  {reason}")
+    if not s.sensor_checked:
         print("  (the calibration records no sensor size: pixels were not range-checked)")
-    box = ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(lo, hi))
+    box = ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(s.lo, s.hi))
     print(f"  extent (x, y, z): {box} mm")
     print(f"wrote {out}")
     return 0

@@ -188,10 +188,10 @@ def stripe_to_camera(
     """
     _check_plane(plane)
     uv = as_points(uv, 2, "uv")
-    camera, plane = _cast_floats((camera, plane), uv.dtype)
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
         return Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
+    camera, plane = _cast_floats((camera, plane), uv.dtype)
     return reference_stripe_to_camera(camera, plane, uv, sensor)
 
 
@@ -250,7 +250,6 @@ def stripe_to_measurement(
             f"{tuple(batch)}: give a scalar or one axis per batch axis, each of length 1 "
             f"or the batch length{hint}"
         )
-    camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
         # Unbroadcast: the kernel takes cos/sin once per frame, then broadcasts.
@@ -258,5 +257,6 @@ def stripe_to_measurement(
         return Reconstruction(
             *fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
         )
+    camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
     fi = jnp.broadcast_to(jnp.asarray(fi), batch)
     return reference_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
