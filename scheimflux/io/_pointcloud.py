@@ -257,8 +257,19 @@ class PointsWriter:
 
     def add(self, frames) -> None:
         """Append frames: each an `(N_i, 3)` array, NaN rows = invalid points."""
+        frames = [_points3(a, f"frame {self.n_frames + i} points") for i, a in enumerate(frames)]
+        if self._ext == ".ply" and self._binary and frames:
+            # One write per call: the valid rows of all the frames given.
+            a = np.concatenate(frames)
+            if np.isinf(a).any():
+                i = next(i for i, f in enumerate(frames) if np.isinf(f).any())
+                raise ValueError(f"frame {self.n_frames + i} points contain infinite values")
+            pts = a[~np.isnan(a).any(axis=1)]
+            self._fh.write(np.ascontiguousarray(pts, dtype="<f8").tobytes())
+            self.n_points += len(pts)
+            self.n_frames += len(frames)
+            return
         for a in frames:
-            a = _points3(a, f"frame {self.n_frames} points")
             if np.isinf(a).any():
                 raise ValueError(f"frame {self.n_frames} points contain infinite values")
             if self._ext == ".ply":
