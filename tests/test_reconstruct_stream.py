@@ -171,6 +171,17 @@ def test_cli_streamed_chunks_equal_one_chunk_and_truncated_input(tmp_path, capsy
     assert main([*argv, "--chunk-frames", "2"]) == 1
     assert "ends early" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == before
+    # NaN pixels in a STRIPES file (written by hand; write_stripes drops them) are refused
+    # with the frame number, after earlier frames were reconstructed: no output either
+    doc = json.loads(data)
+    k = next(i for i in range(4, len(frames)) if len(frames[i]))
+    doc["frames"][k][0] = [float("nan"), 3.0]
+    (tmp_path / "nan.json").write_text(json.dumps(doc))
+    before = sorted(os.listdir(tmp_path))
+    argv = ["reconstruct", cal, str(tmp_path / "nan.json"), "--out", str(tmp_path / "n.ply")]
+    assert main([*argv, "--chunk-frames", "2"]) == 1
+    assert f"frame {k} contains non-finite numbers" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path)) == before
 
 
 def test_sharded_over_four_host_devices_equals_one_device(tmp_path):
