@@ -13,7 +13,7 @@ bandwidth, and streaming a scan to PLY against the in-memory path.
 2. Streaming F frames × 1600 points (`--stream-frames`) to a binary PLY:
    `iter_reconstruct` + `open_points_writer` against `reconstruct_frames` +
    `write_points` (one batch in memory), each in its own subprocess so that the peak
-   RSS (`ru_maxrss`) is that path's alone.
+   RSS (`VmHWM`) is that path's alone.
 
 The machine is shared: every ratio is measured side by side in one process; `uptime` is
 printed with the numbers.
@@ -107,7 +107,7 @@ def bench_camera(sizes, repeats: int, bandwidth: float) -> list[dict]:
 
 
 _STREAM_CHILD = """
-import os, resource, sys, time, numpy as np
+import os, sys, time, numpy as np
 import scheimflux as sf
 from scheimflux.io._pointcloud import open_points_writer, write_points
 from scheimflux.reconstruct import iter_reconstruct, reconstruct_frames
@@ -132,7 +132,9 @@ else:
     pts, _ = reconstruct_frames(cam, plane, list(frames()))
     write_points(out, pts)
 dt = time.perf_counter() - t
-print(dt, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, os.path.getsize(out))
+# VmHWM, not ru_maxrss: Linux carries ru_maxrss over from the parent across fork/exec
+hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM")][0].split()[1]
+print(dt, int(hwm) * 1024, os.path.getsize(out))
 """
 
 

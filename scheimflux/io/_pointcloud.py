@@ -260,12 +260,13 @@ class PointsWriter:
         frames = [_points3(a, f"frame {self.n_frames + i} points") for i, a in enumerate(frames)]
         if self._ext == ".ply" and self._binary and frames:
             # One write per call: the valid rows of all the frames given.
-            a = np.concatenate(frames)
-            if np.isinf(a).any():
+            a = np.concatenate(frames).astype("<f8", copy=False)
+            keep = np.isfinite(a).all(axis=1)
+            if not keep.all() and np.isinf(a[~keep]).any():  # the rest are NaN rows
                 i = next(i for i, f in enumerate(frames) if np.isinf(f).any())
                 raise ValueError(f"frame {self.n_frames + i} points contain infinite values")
-            pts = a[~np.isnan(a).any(axis=1)]
-            self._fh.write(np.ascontiguousarray(pts, dtype="<f8").tobytes())
+            pts = a if keep.all() else a[keep]
+            self._fh.write(memoryview(np.ascontiguousarray(pts)).cast("B"))
             self.n_points += len(pts)
             self.n_frames += len(frames)
             return
