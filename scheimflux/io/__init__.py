@@ -22,8 +22,17 @@ from ._opencv_yaml import (
     read_opencv_yaml as read_opencv_yaml,
     write_opencv_yaml as write_opencv_yaml,
 )
-from ._pointcloud import read_ply as read_ply, write_ply as write_ply, write_points as write_points
-from ._stripes import read_stripes as read_stripes, write_stripes as write_stripes
+from ._pointcloud import (
+    open_points_writer as open_points_writer,
+    read_ply as read_ply,
+    write_ply as write_ply,
+    write_points as write_points,
+)
+from ._stripes import (
+    iter_stripes as iter_stripes,
+    read_stripes as read_stripes,
+    write_stripes as write_stripes,
+)
 
 
 def __getattr__(name):

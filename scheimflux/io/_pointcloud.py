@@ -13,14 +13,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from ._files import check_writable, write_atomic
+from ._files import atomic_output, check_writable, write_atomic
 
 POINTS_FORMAT = "scheimflux.points/1"
 FRAMES = ("camera", "measurement")
@@ -202,6 +203,147 @@ def points_extension(path: str | os.PathLike) -> str:
     return ext
 
 
+_PLY_COUNT_ROOM = 40  # digits reserved for the frame and vertex counts of a streamed PLY
+
+
+def _ply_points_header(frame: str, n_frames: int, n_points: int, binary: bool) -> bytes:
+    """The PLY header of `write_points`, of one length whatever the counts (the frame
+    comment is padded), so a streamed file can be finished by rewriting it in place."""
+    counts = len(str(n_frames)) + len(str(n_points))
+    if counts > _PLY_COUNT_ROOM:
+        raise ValueError(f"too many points for one PLY file ({n_points})")
+    lines = [
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        f"comment scheimflux {frame} frame, mm",
+        f"comment frames {n_frames}" + " " * (_PLY_COUNT_ROOM - counts),
+        f"element vertex {n_points}",
+        "property double x",
+        "property double y",
+        "property double z",
+        "end_header",
+    ]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def _npy_header(n_frames: int, width: int) -> bytes:
+    """The `np.save` header of a float64 `(n_frames, width, 3)` array: NumPy reserves
+    room for the first axis to grow (21 digits), so its length does not depend on
+    `n_frames`."""
+    buf = io.BytesIO()
+    d = {"descr": "<f8", "fortran_order": False, "shape": (n_frames, width, 3)}
+    np.lib.format.write_array_header_1_0(buf, d)
+    return buf.getvalue()
+
+
+class PointsWriter:
+    """Writes reconstructed frames to one point-cloud file as they come (see
+    `open_points_writer`); memory holds nothing but the frames of one `add`."""
+
+    def __init__(self, fh, ext: str, frame: str, binary: bool, width: int | None):
+        self._fh, self._ext, self._frame, self._binary = fh, ext, frame, binary
+        self._width = width
+        self.n_frames = 0
+        self.n_points = 0  # points written (valid rows; for .npy all rows)
+        if ext == ".ply":
+            fh.write(_ply_points_header(frame, 0, 0, binary))
+        elif ext == ".npy":
+            if width is None:
+                raise ValueError(".npy output needs the row width (longest frame) up front")
+            fh.write(_npy_header(0, width))
+        else:
+            head = {"format": POINTS_FORMAT, "frame": frame, "unit": "mm"}
+            fh.write(json.dumps(head, separators=(",", ":"))[:-1].encode() + b',"frames":[')
+
+    def add(self, frames) -> None:
+        """Append frames: each an `(N_i, 3)` array, NaN rows = invalid points."""
+        frames = [_points3(a, f"frame {self.n_frames + i} points") for i, a in enumerate(frames)]
+        if self._ext == ".ply" and self._binary and frames:
+            # One write per call: the valid rows of all the frames given.
+            a = np.concatenate(frames).astype("<f8", copy=False)
+            keep = np.isfinite(a).all(axis=1)
+            if not keep.all() and np.isinf(a[~keep]).any():  # the rest are NaN rows
+                i = next(i for i, f in enumerate(frames) if np.isinf(f).any())
+                raise ValueError(f"frame {self.n_frames + i} points contain infinite values")
+            pts = a if keep.all() else a[keep]
+            self._fh.write(memoryview(np.ascontiguousarray(pts)).cast("B"))
+            self.n_points += len(pts)
+            self.n_frames += len(frames)
+            return
+        for a in frames:
+            if np.isinf(a).any():
+                raise ValueError(f"frame {self.n_frames} points contain infinite values")
+            if self._ext == ".ply":
+                pts = a[~np.isnan(a).any(axis=1)]
+                if self._binary:
+                    self._fh.write(np.ascontiguousarray(pts, dtype="<f8").tobytes())
+                else:
+                    body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in pts.tolist())
+                    self._fh.write(body.encode("ascii"))
+                self.n_points += len(pts)
+            elif self._ext == ".npy":
+                if len(a) > self._width:
+                    raise ValueError(
+                        f"frame {self.n_frames} has {len(a)} points, more than the .npy "
+                        f"row width {self._width}"
+                    )
+                row = np.full((self._width, 3), np.nan)
+                row[: len(a)] = a
+                self._fh.write(row.astype("<f8").tobytes())
+                self.n_points += self._width
+            else:
+                sep = b"," if self.n_frames else b""
+                rows = _valid_rows(a, "points").tolist()
+                self._fh.write(sep + json.dumps(rows, separators=(",", ":")).encode())
+                self.n_points += len(rows)
+            self.n_frames += 1
+
+    def _finish(self) -> None:
+        if self._ext == ".ply":
+            self._fh.seek(0)
+            self._fh.write(_ply_points_header(self._frame, self.n_frames, self.n_points,
+                                              self._binary))  # fmt: skip
+        elif self._ext == ".npy":
+            self._fh.seek(0)
+            self._fh.write(_npy_header(self.n_frames, self._width))
+        else:
+            self._fh.write(b"]}\n")
+
+
+@contextlib.contextmanager
+def open_points_writer(
+    path: str | os.PathLike,
+    frame: str = "camera",
+    *,
+    overwrite: bool = False,
+    binary: bool = True,
+    width: int | None = None,
+) -> Iterator[PointsWriter]:
+    """A `PointsWriter` that streams frames into `path`, made atomic at the end.
+
+    The file is written under a temporary name beside `path` (`atomic_output`) and moved
+    into place only when the `with` block ends without an exception, so a failure
+    midway (bad input, a crash, Ctrl-C) leaves no partial output. The bytes equal those
+    of `write_points` with the same frames (`.ply`: the counts are rewritten in the
+    fixed-length header at the end; `.npy`: `np.save`'s header, whose length does not
+    depend on the number of frames, rewritten at the end; `.json`: the same compact
+    text).
+
+    **Arguments:**
+    - `frame`: `"camera"` or `"measurement"`.
+    - `binary`: binary PLY (default) or ASCII.
+    - `width`: for `.npy`, the row length (the longest frame); frames are NaN-padded to it.
+    """
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+    ext = points_extension(path)
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as fh:
+            writer = PointsWriter(fh, ext, frame, binary, width)
+            yield writer
+            writer._finish()
+
+
 def write_points(
     path: str | os.PathLike,
     frames,
@@ -221,6 +363,8 @@ def write_points(
       invalid points left out. `.ply`: every valid point of every frame (binary unless
       `binary=False`). `.npy`: float64 `(F, N_max, 3)` padded with NaN, invalid points
       kept as NaN rows (`(N, 3)` for a single array of points).
+
+    The same bytes as streaming the frames through `open_points_writer`.
     """
     if frame not in FRAMES:
         raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -230,30 +374,11 @@ def write_points(
     for i, a in enumerate(arrays):
         if np.isinf(a).any():
             raise ValueError(f"frame {i} points contain infinite values")
-    if ext == ".json":
-        doc = {
-            "format": POINTS_FORMAT,
-            "frame": frame,
-            "unit": "mm",
-            "frames": [_valid_rows(a, "points").tolist() for a in arrays],
-        }
-        data: bytes | str = json.dumps(doc, separators=(",", ":"), allow_nan=False) + "\n"
-    elif ext == ".ply":
-        pts = np.concatenate([np.zeros((0, 3))] + arrays)
-        data = ply_bytes(
-            pts,
-            binary=binary,
-            comments=(f"scheimflux {frame} frame, mm", f"frames {len(arrays)}"),
-        )
-    else:
-        if single:
-            out = arrays[0]
-        else:
-            n_max = max([len(a) for a in arrays] + [0])
-            out = np.full((len(arrays), n_max, 3), np.nan)
-            for i, a in enumerate(arrays):
-                out[i, : len(a)] = a
+    if ext == ".npy" and single:
         buf = io.BytesIO()
-        np.save(buf, np.ascontiguousarray(out, dtype=np.float64), allow_pickle=False)
-        data = buf.getvalue()
-    write_atomic(path, data, overwrite=overwrite)
+        np.save(buf, np.ascontiguousarray(arrays[0], dtype=np.float64), allow_pickle=False)
+        write_atomic(path, buf.getvalue(), overwrite=overwrite)
+        return
+    width = max([len(a) for a in arrays] + [0])
+    with open_points_writer(path, frame, overwrite=overwrite, binary=binary, width=width) as w:
+        w.add(arrays)

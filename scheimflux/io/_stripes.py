@@ -16,9 +16,8 @@ centres) read as NaN confidences, and readers that ignore it see the same file a
 from __future__ import annotations
 
 import json
-import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -99,6 +98,21 @@ def write_stripes(
     write_atomic(path, json.dumps(doc, separators=(",", ":")) + "\n", overwrite=overwrite)
 
 
+def _parse_frame(path: str, i: int, frame: Any) -> np.ndarray:
+    """One decoded JSON frame as an (N, 2) float64 array, checked."""
+    if not isinstance(frame, list) or any(
+        not isinstance(p, list)
+        or len(p) != 2
+        or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in p)
+        for p in frame
+    ):
+        raise ValueError(f"{path}: frame {i} must be a list of [u, v] number pairs")
+    arr = np.asarray(frame, dtype=np.float64).reshape(-1, 2)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{path}: frame {i} contains non-finite numbers")
+    return arr
+
+
 def read_stripes(
     path: str | os.PathLike, *, confidence: bool = False
 ) -> list[np.ndarray] | tuple[list[np.ndarray], list[np.ndarray]]:
@@ -123,19 +137,7 @@ def read_stripes(
     frames = data["frames"]
     if not isinstance(frames, list):
         raise ValueError(f"{path}: 'frames' must be a list of frames")
-    result = []
-    for i, frame in enumerate(frames):
-        if not isinstance(frame, list) or any(
-            not isinstance(p, list)
-            or len(p) != 2
-            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in p)
-            for p in frame
-        ):
-            raise ValueError(f"{path}: frame {i} must be a list of [u, v] number pairs")
-        arr = np.asarray(frame, dtype=np.float64).reshape(-1, 2)
-        if not all(math.isfinite(x) for x in arr.ravel()):
-            raise ValueError(f"{path}: frame {i} contains non-finite numbers")
-        result.append(arr)
+    result = [_parse_frame(path, i, frame) for i, frame in enumerate(frames)]
     if not confidence:
         return result
     conf = data.get("confidence")
@@ -157,3 +159,124 @@ def read_stripes(
         else:
             confs.append(np.asarray(c, dtype=np.float64))
     return result, confs
+
+
+class _Tokens:
+    """Incremental JSON reading of one file: values decoded one at a time from a buffer
+    refilled in blocks, so memory holds one value (one frame), not the file."""
+
+    def __init__(self, fh, path: str, block: int):
+        self.fh, self.path, self.block = fh, path, block
+        self.buf, self.pos, self.eof = "", 0, False
+        self.decoder = json.JSONDecoder()
+
+    def _fill(self) -> bool:
+        if self.eof:
+            return False
+        more = self.fh.read(self.block)
+        if not more:
+            self.eof = True
+            return False
+        self.buf = self.buf[self.pos :] + more
+        self.pos = 0
+        return True
+
+    def char(self) -> str:
+        """The next non-blank character (not consumed); '' at the end of the file."""
+        while True:
+            while self.pos < len(self.buf) and self.buf[self.pos] in " \t\r\n":
+                self.pos += 1
+            if self.pos < len(self.buf):
+                return self.buf[self.pos]
+            if not self._fill():
+                return ""
+
+    def expect(self, chars: str) -> str:
+        c = self.char()
+        if c == "":
+            raise ValueError(f"{self.path}: the file ends early (truncated JSON)")
+        if c not in chars:
+            raise ValueError(f"{self.path}: not valid JSON (expected {chars!r}, got {c!r})")
+        self.pos += 1
+        return c
+
+    def value(self) -> Any:
+        self.char()
+        while True:
+            try:
+                v, end = self.decoder.raw_decode(self.buf, self.pos)
+            except json.JSONDecodeError as err:
+                # A value cut by the end of the buffer: read more; at the end of the
+                # file it is truncated (or malformed).
+                if self._fill():
+                    continue
+                if err.pos >= len(self.buf) - 1 or "Unterminated" in err.msg:
+                    raise ValueError(f"{self.path}: the file ends early (truncated JSON)") from None
+                raise ValueError(f"{self.path}: not valid JSON ({err.msg})") from None
+            # A number at the end of the buffer may continue in the next block.
+            if end == len(self.buf) and not self.eof and self._fill():
+                continue
+            self.pos = end
+            return v
+
+    def items(self) -> Iterator[Any]:
+        """The elements of the array that starts here, one at a time."""
+        self.expect("[")
+        if self.char() == "]":
+            self.pos += 1
+            return
+        while True:
+            yield self.value()
+            if self.expect(",]") == "]":
+                return
+
+
+def iter_stripes(path: str | os.PathLike, *, block_size: int = 1 << 20) -> Iterator[np.ndarray]:
+    """Read a STRIPES.json file one frame at a time: (N_i, 2) float64 arrays in order.
+
+    The same file and checks as `read_stripes`, but memory holds one frame (and one
+    `block_size` of text), whatever the length of the scan. The rest of the file is read
+    and checked after the last frame (so a file cut short, or of another format, raises
+    `ValueError` when the iteration reaches the end, after earlier frames were given).
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"stripes file not found: {path}")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a folder, not a stripes file")
+    with open(path, encoding="utf-8") as fh:
+        tok = _Tokens(fh, path, block_size)
+        try:
+            tok.expect("{")
+        except ValueError:
+            raise ValueError(f"{path}: expected a JSON object with a 'frames' key") from None
+        seen_frames = False
+        if tok.char() == "}":
+            tok.pos += 1
+        else:
+            while True:
+                key = tok.value()
+                if not isinstance(key, str):
+                    raise ValueError(f"{path}: not valid JSON (object keys must be strings)")
+                tok.expect(":")
+                if key == "frames":
+                    if tok.char() != "[":
+                        raise ValueError(f"{path}: 'frames' must be a list of frames")
+                    for i, frame in enumerate(tok.items()):
+                        yield _parse_frame(path, i, frame)
+                    seen_frames = True
+                elif key == "confidence" and tok.char() == "[":
+                    for _ in tok.items():  # checked by read_stripes(confidence=True)
+                        pass
+                else:
+                    v = tok.value()
+                    if key == "format" and v != FORMAT:
+                        raise ValueError(
+                            f"{path}: unsupported format {v!r} (expected {FORMAT!r})"
+                        )
+                if tok.expect(",}") == "}":
+                    break
+        if tok.char() != "":
+            raise ValueError(f"{path}: not valid JSON (extra data after the object)")
+        if not seen_frames:
+            raise ValueError(f"{path}: missing key 'frames'")

@@ -7,3 +7,7 @@ from ._reconstruct import (
     stripe_to_camera as stripe_to_camera,
     stripe_to_measurement as stripe_to_measurement,
 )
+from ._stream import (
+    iter_reconstruct as iter_reconstruct,
+    reconstruct_frames as reconstruct_frames,
+)

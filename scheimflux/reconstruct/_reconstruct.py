@@ -14,6 +14,14 @@ from .._checks import as_points
 from ..camera._base import AbstractCamera, Ray
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
+from ._kernel import (
+    DEGENERATE_PLANE_MM as DEGENERATE_PLANE_MM,
+    PARALLEL_COS as PARALLEL_COS,
+    fast_stripe_to_camera,
+    fast_stripe_to_measurement,
+    has_fast_path,
+    plane_ok as _plane_ok,
+)
 
 
 class Status(enum.IntEnum):
@@ -43,22 +51,11 @@ class Reconstruction(eqx.Module):
         return self.status == Status.OK
 
 
-# A ray counts as parallel to the plane when the cosine of the angle between the ray and
-# the plane normal is below this (about 0.06 degrees from grazing).
-PARALLEL_COS = 1e-3
-
-# A laser plane closer than this to the camera centre (the ray origin) is degenerate: every
-# ray meets it next to the centre, so all points collapse onto one spot. 1 µm is below the
-# object-side footprint of one pixel of any rig this package models (3.45–5.5 µm pixels at
-# |β| ≤ 2 give ≥ 1.7 µm), so such a plane cannot separate two pixels: it carries no depth.
-DEGENERATE_PLANE_MM = 1e-3
-
-
-def _plane_ok(plane: LaserPlane) -> Bool[Array, ""]:
-    """Whether the plane is finite and at least `DEGENERATE_PLANE_MM` from the origin."""
-    n = plane.n
-    nn = jnp.sum(n * n)
-    return jnp.all(jnp.isfinite(n)) & (nn > 0) & (nn < 1.0 / DEGENERATE_PLANE_MM**2)
+# PARALLEL_COS (a ray counts as parallel to the plane when the cosine of the angle between
+# the ray and the plane normal is below it: about 0.06 degrees from grazing) and
+# DEGENERATE_PLANE_MM (a plane closer than this to the camera centre carries no depth: 1 µm
+# is below the object-side footprint of one pixel of any rig this package models, 3.45–5.5
+# µm pixels at |β| ≤ 2 giving ≥ 1.7 µm) live in `_kernel.py`, shared with the fast path.
 
 
 def intersect_ray_plane(
@@ -133,7 +130,9 @@ def _pixel_to_camera(camera: AbstractCamera, plane: LaserPlane, uv, sensor):
 
 
 @eqx.filter_jit
-def _stripe_to_camera(camera, plane, uv, sensor=None):
+def reference_stripe_to_camera(camera, plane, uv, sensor=None):
+    """The reference path: `intersect_ray_plane` on each pixel's ray, under `jax.vmap`
+    (any camera). The fused kernel of `_kernel.py` must agree with it."""
     flat = uv.reshape(-1, 2)
     X, status = jax.vmap(_pixel_to_camera, in_axes=(None, None, 0, None))(
         camera, plane, flat, sensor
@@ -189,13 +188,17 @@ def stripe_to_camera(
     """
     _check_plane(plane)
     uv = as_points(uv, 2, "uv")
+    sensor = _sensor(sensor_size, uv.dtype)
+    if has_fast_path(camera):
+        return Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
     camera, plane = _cast_floats((camera, plane), uv.dtype)
-    return _stripe_to_camera(camera, plane, uv, _sensor(sensor_size, uv.dtype))
+    return reference_stripe_to_camera(camera, plane, uv, sensor)
 
 
 @eqx.filter_jit
-def _stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
-    rec = _stripe_to_camera(camera, plane, uv, sensor)
+def reference_stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
+    """The reference path of `stripe_to_measurement` (`frame_index` of the batch shape)."""
+    rec = reference_stripe_to_camera(camera, plane, uv, sensor)
     to_m = stage.to_measurement
     for _ in range(uv.ndim - 1):
         to_m = jax.vmap(to_m)
@@ -247,6 +250,13 @@ def stripe_to_measurement(
             f"{tuple(batch)}: give a scalar or one axis per batch axis, each of length 1 "
             f"or the batch length{hint}"
         )
-    fi = jnp.broadcast_to(jnp.asarray(fi), batch)
+    sensor = _sensor(sensor_size, uv.dtype)
+    if has_fast_path(camera):
+        # Unbroadcast: the kernel takes cos/sin once per frame, then broadcasts.
+        fi = jnp.asarray(fi)
+        return Reconstruction(
+            *fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
+        )
     camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
-    return _stripe_to_measurement(camera, plane, stage, uv, fi, _sensor(sensor_size, uv.dtype))
+    fi = jnp.broadcast_to(jnp.asarray(fi), batch)
+    return reference_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)

@@ -1,0 +1,3 @@
+"""Scale-out over many scans with Dask (`pip install "scheimflux[scale]"`)."""
+
+from ._dask import ScanResult as ScanResult, reconstruct_scans as reconstruct_scans

@@ -1,0 +1,148 @@
+"""The fused reconstruction kernel (`reconstruct/_kernel.py`) against the reference path
+(`intersect_ray_plane` on each pixel's ray under vmap)."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import scheimflux as sf
+from scheimflux.reconstruct._kernel import has_fast_path
+from scheimflux.reconstruct._reconstruct import (
+    _cast_floats,
+    reference_stripe_to_camera,
+    reference_stripe_to_measurement,
+)
+
+SENSOR = (1600, 1200)
+
+
+def _pixels(n=400, seed=0):
+    """Pixels over and beyond the sensor, with NaN gaps (every status but the plane's)."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform([-200.0, -150.0], [1800.0, 1350.0], (n, 2))
+    uv[::17, 0] = np.nan
+    uv[5::23, 1] = np.inf
+    return uv
+
+
+def _cameras():
+    thick = sf.paper_thick_lens("scheimpflug-1.5")
+    distorted = eqx.tree_at(
+        lambda c: c.distortion, thick, sf.camera.RadialTangential(k1=-0.8, p1=1e-3)
+    )
+    folded = eqx.tree_at(lambda c: c.distortion, thick, sf.camera.RadialTangential(k1=-2000.0))
+    pinhole = sf.Pinhole(3000.0, 3010.0, 1.5, 800.0, 600.0)
+    return {"thick": thick, "distorted": distorted, "folded": folded, "pinhole": pinhole}
+
+
+def _reference(cam, plane, uv, sensor_size):
+    uv = jnp.asarray(uv)
+    cam, plane = _cast_floats((cam, plane), uv.dtype)
+    sensor = None if sensor_size is None else jnp.asarray(sensor_size, uv.dtype)
+    return reference_stripe_to_camera(cam, plane, uv, sensor)
+
+
+@pytest.mark.parametrize(
+    "name, sensor_size",
+    [("thick", None), ("thick", SENSOR), ("distorted", SENSOR), ("folded", None),
+     ("pinhole", SENSOR)],
+)
+def test_fast_equals_reference(name, sensor_size):
+    cam = _cameras()[name]
+    assert has_fast_path(cam)
+    plane = sf.paper_laser_plane()
+    uv = _pixels()
+    fast = sf.stripe_to_camera(cam, plane, uv, sensor_size=sensor_size)
+    ref = _reference(cam, plane, uv, sensor_size)
+    np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
+    # X = h / (n·h) against origin + t·d with t = 1/(n·d), d = P/|P|: a dozen roundings of
+    # unit size on points ~150 mm from the camera, i.e. a few 1e-14 relative; 1e-12 leaves
+    # room for the undistortion's own rounding (its residual tolerance is 1e-13).
+    np.testing.assert_allclose(fast.points, ref.points, rtol=1e-12, atol=0)
+    assert np.isnan(np.asarray(fast.points)[np.asarray(fast.status) != 0]).all()
+    if name == "folded":  # the fold gives failed undistortions: the status must say so
+        assert int(np.sum(np.asarray(fast.status) == sf.Status.INVALID_PIXEL)) > 30
+
+
+def test_every_status_equals_reference():
+    cam = _cameras()["thick"]
+    d = cam.backproject(jnp.array([800.0, 600.0])).direction
+    planes = {
+        "parallel": sf.LaserPlane.from_normal_distance(jnp.cross(d, jnp.array([0.0, 1, 0])), 50),
+        "behind": sf.LaserPlane.from_normal_distance(-d, 100.0),
+        "degenerate": sf.LaserPlane.from_normal_distance([-0.15, 0.03, 0.99], 1.5e-4),
+        "nan": jax.jit(lambda s: sf.LaserPlane(jnp.array([s, 0.0, 1.0])))(jnp.nan),
+    }
+    uv = np.array([[800.0, 600.0], [np.nan, 3.0], [-10.0, 600.0], [800.0, 1300.0]])
+    seen = set()
+    for plane in planes.values():
+        fast = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+        ref = _reference(cam, plane, uv, SENSOR)
+        np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
+        seen |= set(np.asarray(fast.status).tolist())
+    assert seen == {1, 2, 3, 4, 5}
+
+
+@pytest.mark.parametrize("name", ["thick", "distorted"])
+def test_fast_jit_equals_eager(name):
+    cam, plane = _cameras()[name], sf.paper_laser_plane()
+    uv = _pixels(60)
+    jit = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+    with jax.disable_jit():
+        eager = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+    np.testing.assert_array_equal(np.asarray(jit.status), np.asarray(eager.status))
+    # XLA may contract a*b+c into an FMA under jit: one rounding per product, ~1e-15.
+    np.testing.assert_allclose(jit.points, eager.points, rtol=1e-13)
+
+
+def test_float32_within_derived_tolerance():
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    uv = _pixels()
+    r64 = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+    r32 = sf.stripe_to_camera(cam, plane, uv.astype(np.float32), sensor_size=SENSOR)
+    assert r32.points.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(r32.status), np.asarray(r64.status))
+    # float32: the camera parameters (|K_f| entries up to ~1e5 times pixel values ~1e3)
+    # and each of ~12 operations round at 2^-24 ≈ 6e-8; n·h sums terms of one sign (the
+    # plane faces the camera), so no cancellation: |ΔX|/|X| ≲ 12 · 6e-8 ≈ 7e-7 per
+    # coordinate of the largest magnitude; 3e-6 of the point's norm bounds it.
+    p64, p32 = np.asarray(r64.points), np.asarray(r32.points, np.float64)
+    ok = np.asarray(r64.status) == 0
+    err = np.linalg.norm(p32[ok] - p64[ok], axis=1) / np.linalg.norm(p64[ok], axis=1)
+    assert err.max() < 3e-6
+
+
+def test_fast_gradients_equal_reference():
+    cam, plane = _cameras()["distorted"], sf.paper_laser_plane()
+    uv = jnp.array([[300.0, 200.0], [1300.0, 1000.0], [np.nan, 5.0]])
+
+    def loss(path):
+        def f(c, p):
+            rec = path(c, p)
+            return jnp.sum(jnp.where(rec.status[:, None] == 0, rec.points, 0.0) ** 2)
+
+        return jax.grad(f, argnums=(0, 1))(cam, plane)
+
+    g_fast = jax.tree.leaves(loss(lambda c, p: sf.stripe_to_camera(c, p, uv)))
+    g_ref = jax.tree.leaves(loss(lambda c, p: reference_stripe_to_camera(c, p, uv)))
+    for a, b in zip(g_fast, g_ref):
+        assert np.all(np.isfinite(np.asarray(a)))
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(np.asarray(b)).max())
+
+
+def test_measurement_fast_equals_reference():
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    uv = _pixels(5 * 80).reshape(5, 80, 2)
+    fi = np.arange(5)[:, None]
+    fast = sf.stripe_to_measurement(cam, plane, stage, uv, fi, sensor_size=SENSOR)
+    c, p, s = _cast_floats((cam, plane, stage), jnp.float64)
+    ref = reference_stripe_to_measurement(
+        c, p, s, jnp.asarray(uv), jnp.broadcast_to(fi, (5, 80)), jnp.asarray(SENSOR, float)
+    )
+    np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
+    np.testing.assert_allclose(fast.points, ref.points, rtol=1e-12)
