@@ -158,10 +158,8 @@ def _check_args(args) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from ..capture._workflow import detect_captures, extract_scan
-    from ..io._observations import Nominal, write_observations
+    from ..capture._session import detect_session
+    from ..io._observations import write_observations
     from ..targets._target import make_target
 
     _check_args(args)
@@ -173,40 +171,23 @@ def run(args: argparse.Namespace) -> int:
         dictionary=args.dictionary,
         diameter_mm=args.circle_diameter_mm,
     )
-    nominal = None
-    if args.focal_length_mm is not None or args.magnification is not None or args.tilt_deg:
-        nominal = Nominal(
-            args.focal_length_mm,
-            args.magnification,
-            None if args.tilt_deg is None else tuple(args.tilt_deg),
-        )
-    obs, report = detect_captures(
+    obs, report = detect_session(
         args.images_dir,
         target,
         pixel_pitch_mm=args.pixel_pitch_mm,
-        nominal=nominal,
+        focal_length_mm=args.focal_length_mm,
+        magnification=args.magnification,
+        tilt_deg=args.tilt_deg,
+        scan=args.scan,
+        delta_omega_deg=args.delta_omega_deg,
+        gauge_radius_mm=args.gauge_radius_mm,
         stripe_width_px=args.stripe_width_px,
         margin_px=args.board_margin_px,
         min_points=args.min_points,
         mirrored=args.mirrored,
         preview_dir=args.preview,
-        on_view=lambda k, m: _report(m),
+        on_note=_report,
     )
-    if report.ignored:
-        shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
-        _report(f"ignored {len(report.ignored)} file(s) not named like a capture: {shown}")
-    if args.scan is not None:
-        stage = extract_scan(
-            args.scan,
-            args.delta_omega_deg,
-            args.gauge_radius_mm,
-            stripe_width_px=args.stripe_width_px,
-            shape=(obs.height, obs.width),
-            on_frame=_report,
-        )
-        obs = dataclasses.replace(obs, stage=stage)
-    if obs.pixel_pitch_mm is None:
-        _report("no --pixel-pitch-mm given: none recorded (the thick-lens model needs it)")
     write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in obs.views)
     n_points = sum(int(v.corner_mask.sum()) for v in obs.views)
