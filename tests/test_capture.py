@@ -88,6 +88,19 @@ def test_find_captures_layouts(tmp_path):
     ]
     assert views[2].board is None and views[3].stripe is None
     assert ignored == ["notes.txt", "view_x.png"]
+    # a laser-off image beside a single image joins its view
+    (tmp_path / "view_0_off.png").write_bytes(b"")
+    views, _ = find_captures(tmp_path)
+    assert views[0].off.endswith("view_0_off.png") and views[0].layout == "single"
+    assert views[0].names == ("view_0.jpg", "view_0_off.png")
+    (tmp_path / "view_0_OFF.bmp").write_bytes(b"")
+    with pytest.raises(ValueError, match="view 0 has two images .*view_0_OFF.bmp and view_0_off.png"):
+        find_captures(tmp_path)
+    (tmp_path / "view_0_OFF.bmp").unlink()
+    (tmp_path / "view_1_off.png").write_bytes(b"")  # beside a pair: its board is laser off
+    with pytest.raises(ValueError, match="view_1_off.png in .* no view_1.<ext>"):
+        find_captures(tmp_path)
+    (tmp_path / "view_1_off.png").unlink()
     (tmp_path / "view_0_board.png").write_bytes(b"")
     with pytest.raises(ValueError, match="view 0 has two images .*view_0.jpg and view_0_board"):
         find_captures(tmp_path)
@@ -250,6 +263,65 @@ def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
     assert "view 0 has two images for one purpose" in capsys.readouterr().err
     assert main(base[:1] + [str(tmp_path / "none")] + base[2:]) == 1
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
+    """The path's shape, fast: one folder mixing a pair, a colour JPEG, a grey image
+    with its laser-off image and a view without the target goes through `detect`, and
+    `calibrate` gets exactly what detect found (the solver is replaced by a recorder:
+    the solve itself is checked end to end by the slow tests below)."""
+    import shutil
+
+    import scheimflux.calibrate._calibrate as calibrate_module
+
+    board = CharucoBoard(8, 6, 0.2, 0.14)
+    rig, truth, corners = _scene(cam, board, rots=(183.0, 188.0, 178.0))
+    images, parts = tmp_path / "images", tmp_path / "parts"
+    kinds = [("pair", {}), ("single", dict(colour=True, ext="jpg")), ("single", {})]
+    for k, (layout, kw) in enumerate(kinds):
+        one = types.SimpleNamespace(board_poses=[truth.board_poses[k]],
+                                    stripe_px=[truth.stripe_px[k]], scan_px=[])  # fmt: skip
+        write_scene_images(parts / str(k), rig, board, one, layout=layout, seed=k, **kw)
+        if k == 2:  # its laser-off image: the same pose, no line
+            write_scene_images(parts / "off", rig, board, one, layout=layout, seed=9,
+                               laser_peak=0.0)  # fmt: skip
+            shutil.move(parts / "off" / "view_0.png", parts / "2" / "view_0_off.png")
+        for f in (parts / str(k)).glob("view_0*"):
+            images.mkdir(exist_ok=True)
+            shutil.move(f, images / f.name.replace("view_0", f"view_{k}"))
+    cv2.imwrite(str(images / "view_3.png"), np.full((600, 800), 90, np.uint8))
+    obs_path, cal = tmp_path / "obs.json", tmp_path / "cal.json"
+    argv = ["detect", str(images), "--target", "charuco", "--board", "8x6", "--square-mm",
+            "0.2", "--marker-mm", "0.14", "--out", str(obs_path)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    cap = capsys.readouterr()
+    assert "found in 3 of 4 view(s)" in cap.out and "view 3 (view_3.png) dropped" in cap.err
+    assert "no pixel pitch given (--pixel-pitch-mm)" in cap.err
+    obs = read_observations(obs_path)
+    assert [v.source for v in obs.views] == [
+        ("view_0_board.png", "view_0_stripe.png"), ("view_1.jpg",),
+        ("view_2.png", "view_2_off.png"),
+    ]  # fmt: skip
+    for v, c, line in zip(obs.views, corners, truth.stripe_px):
+        m = v.corner_mask
+        assert m.sum() >= 14 and np.hypot(*(v.corners_px - c)[m].T).max() < 0.15
+        assert len(v.stripe_px) > 100 and np.median(_near_line(v.stripe_px, line)) < 0.1
+    # the laser-off image makes the grey view as good as the pair: every corner found
+    assert obs.views[2].corner_mask.sum() == obs.views[0].corner_mask.sum()
+
+    got = []
+
+    def recorder(observations, **kwargs):
+        got.append(observations)
+        raise ValueError("recorded")
+
+    monkeypatch.setattr(calibrate_module, "calibrate", recorder)
+    argv = ["calibrate", str(obs_path), "--out", str(cal), "--model", "pinhole"]
+    assert main(argv) == 1 and not cal.exists()
+    assert "recorded" in capsys.readouterr().err
+    (seen,) = got
+    assert len(seen.views) == 3 and [d.view for d in seen.dropped] == [3]
+    np.testing.assert_array_equal(seen.views[1].corners_px, obs.views[1].corners_px)
 
 
 @pytest.mark.slow
@@ -427,3 +499,30 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
         max3d_um=float(res3d.max() * 1e3),
         n_kept=len(obs.views),
     )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("layout_name", list(E2E_LAYOUTS))
+@pytest.mark.parametrize("target_name", list(E2E_TARGETS))
+def test_end_to_end(tmp_path, capsys, target_name, layout_name):
+    """Default `detect`, then default `calibrate`, on rendered captures (see E2E_TARGETS;
+    the numbers of docs/capture.md's table come from here)."""
+    r = end_to_end(tmp_path, target_name, layout_name)
+    print(target_name, layout_name, r)
+    assert r["converged"] is True
+    # a model that fits leaves residuals at the noise floor (a little below it: the fit
+    # absorbs p parameters of 2N); 10 % above it is the issue's acceptance bound
+    assert r["rms_px"] <= 1.1 * r["floor_px"]
+    # no detected point off its truth by more than 0.5 px (the laser in grey images)
+    assert r["worst_px"] < 0.5
+    # stripe centres: nearly all on the exact line
+    assert r["stripe_on"] > 0.98 and r["stripe_rms_px"] < 0.1
+    # 3-D: one object-space pixel is 4.4 um / 1.5 = 2.9 um; points 0.1 px off their
+    # line give 0.3 um, the line's plane from ~10 views averages far below. 0.5 um and
+    # 0.01 deg (0.5 um over 3 mm) bound a correct calibration with a wide margin and
+    # fail a wrong plane or scale (a 0.1 % scale error alone is 3 um at 3 mm).
+    assert r["rms3d_um"] < 0.5 and r["plane_deg"] < 0.01
+    if target_name == "charuco":
+        assert r["n_kept"] >= 14  # partly visible boards count
+    else:  # whole-or-nothing targets: every view seen whole is kept
+        assert r["n_kept"] == r["seen_whole"]
