@@ -94,7 +94,7 @@ def test_find_captures_layouts(tmp_path):
     assert views[0].off.endswith("view_0_off.png") and views[0].layout == "single"
     assert views[0].names == ("view_0.jpg", "view_0_off.png")
     (tmp_path / "view_0_OFF.bmp").write_bytes(b"")
-    with pytest.raises(ValueError, match="view 0 has two images .*view_0_OFF.bmp and view_0_off.png"):
+    with pytest.raises(ValueError, match="two images .*view_0_OFF.bmp and view_0_off.png"):
         find_captures(tmp_path)
     (tmp_path / "view_0_OFF.bmp").unlink()
     (tmp_path / "view_1_off.png").write_bytes(b"")  # beside a pair: its board is laser off
