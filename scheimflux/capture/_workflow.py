@@ -7,8 +7,9 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 - the target is not found, or fewer than `min_points` of its points are (ChArUco), or
   they lie on one line.
 A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
-its target points with an empty stripe list (a note says so). Images of another size
-than the first one are an error (they cannot come from one sensor).
+its target points with an empty stripe list (a note says so). A view with an image of
+another size than the first one read is dropped too (it cannot come from the same
+sensor), naming the file and both sizes: what the other views gave is kept.
 """
 
 from __future__ import annotations
@@ -54,15 +55,17 @@ class _SizeCheck:
         self.shape: tuple[int, int] | None = None
         self.first = ""
 
-    def __call__(self, image: np.ndarray, path: str) -> None:
+    def mismatch(self, image: np.ndarray, path: str) -> str:
+        """"" when `image` has the size of the first one seen, else why not."""
         if self.shape is None:
             self.shape, self.first = image.shape[:2], os.path.basename(path)
         elif image.shape[:2] != self.shape:
             h, w = image.shape[:2]
-            raise ValueError(
-                f"{path} is {w}x{h} px but {self.first} is {self.shape[1]}x{self.shape[0]} px; "
-                "all images must come from the same sensor"
+            return (
+                f"{os.path.basename(path)} is {w}x{h} px but {self.first} is "
+                f"{self.shape[1]}x{self.shape[0]} px (not the same sensor)"
             )
+        return ""
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -135,8 +138,8 @@ def detect_captures(
     - `on_view`: called as `on_view(k, message)` for each remark while running.
 
     **Returns:** `(observations, report)`. Raises `ValueError` when the folder has no
-    capture images, when images differ in size, or when the target is found in no view
-    (the message lists why for the first views).
+    capture images or when the target is found in no view (the message lists why for
+    the first views).
     """
     views_in, ignored = find_captures(folder)
     report = CaptureReport(ignored=ignored)
@@ -170,14 +173,18 @@ def detect_captures(
         if image is None:
             drop(cv, f"{os.path.basename(cv.board)} cannot be read or decoded")
             continue
-        size(image, cv.board)
+        why = size.mismatch(image, cv.board)
+        if why:
+            drop(cv, why)
+            continue
         off = None
         if cv.off is not None:
             off = read_image(cv.off)
             if off is None:
                 note(cv, f"{os.path.basename(cv.off)} unreadable; detecting without it")
-            else:
-                size(off, cv.off)
+            elif size.mismatch(off, cv.off):
+                drop(cv, size.mismatch(off, cv.off))
+                continue
         # the target is detected in a laser-free image where there is one
         res = detect_target(laser_free(image if off is None else off), target,
                             mirrored=mirrored)  # fmt: skip
@@ -203,8 +210,10 @@ def detect_captures(
             simg = image if cv.stripe == cv.board else read_image(cv.stripe)
             if simg is None:
                 note(cv, f"{os.path.basename(cv.stripe)} unreadable; no stripe")
+            elif size.mismatch(simg, cv.stripe):
+                drop(cv, size.mismatch(simg, cv.stripe))
+                continue
             else:
-                size(simg, cv.stripe)
                 # one grey image of target and line (no laser-off image): keep the line
                 # out of the dots, and the points out of the line's reach (_laser.py)
                 shared = cv.layout == "single" and off is None and laser_in_board(image)
@@ -290,11 +299,11 @@ def extract_scan(
     on_frame: Callable[[str], None] | None = None,
 ) -> StageScan:
     """The rotary-stage scan of a gauge: every image in `folder`, in natural name order,
-    is one frame. An unreadable frame or one without a line is kept as an empty frame (so
-    frame indices stay right) and reported through `on_frame`.
+    is one frame. An unreadable frame, one of another size than `shape` (or than the
+    first frame) or one without a line is kept as an empty frame (so frame indices stay
+    right) and reported through `on_frame`.
 
-    Raises `ValueError` when the folder holds no images or a frame's size differs from
-    `shape`.
+    Raises `ValueError` when the folder holds no images.
     """
     from ..stripe import extract_stripe
 
@@ -320,7 +329,11 @@ def extract_scan(
             say(f"unreadable scan frame {name} kept as an empty frame")
             frames.append(np.zeros((0, 2)))
             continue
-        size(image, path)
+        why = size.mismatch(image, path)
+        if why:
+            say(f"scan frame {why}: kept as an empty frame")
+            frames.append(np.zeros((0, 2)))
+            continue
         try:
             frames.append(extract_stripe(image, width_px=stripe_width_px).valid_uv)
         except ValueError as err:
