@@ -6,7 +6,9 @@ File naming in IMAGES_DIR, per board pose (view) k = 0, 1, 2, ... either
   view_<k>.<ext>          one image with the board and the laser line on it, or
   view_<k>_board.<ext>    the board, laser off, and
   view_<k>_stripe.<ext>   the laser line on the board in the same pose;
-<ext>: png, jpg, jpeg, tif, tiff or bmp (grey or colour, 8 or 16 bits). Views are
+beside a single image optionally view_<k>_off.<ext>, the same pose with the laser off
+(the target is then detected in it and the line found in the difference: best for grey
+cameras). <ext>: png, jpg, jpeg, tif, tiff or bmp (grey or colour, 8 or 16 bits). Views are
 sorted by the number <k> (view_2 before view_10). Other files are ignored (and listed).
 
 Targets (--target): checkerboard (--board = inner corners COLSxROWS), charuco (--board =
@@ -51,7 +53,9 @@ def register(subparsers) -> None:
         epilog="\n\n".join(__doc__.split("\n\n")[1:]),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("images_dir", metavar="IMAGES_DIR", help="folder of view_<k>[_board|_stripe].*")
+    p.add_argument(
+        "images_dir", metavar="IMAGES_DIR", help="folder of view_<k>[_board|_stripe|_off].*"
+    )
     p.add_argument(
         "--target",
         choices=TARGET_KINDS,
