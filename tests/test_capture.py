@@ -194,6 +194,31 @@ def test_single_grey_stripe_on_board(cam, tmp_path):
     assert not v.corner_mask[_near_line(corners[0], line) < 20].any()
 
 
+def test_fill_holes_and_laser_in_board():
+    """`fill_holes` continues a line running along the bridging axis exactly (straight
+    interpolation of a profile that does not change along it), on either axis and at
+    the border; `laser_in_board` tells grey (or grey saved as colour) from a colour
+    laser."""
+    from scheimflux.capture import fill_holes
+    from scheimflux.capture._laser import laser_in_board
+
+    line = np.zeros((50, 60), np.float32)
+    line[20:25] = np.array([0.2, 0.7, 1.0, 0.7, 0.2])[:, None]
+    holes = np.zeros((50, 60), bool)
+    holes[10:40, 20:40] = True
+    holes[0:30, 55:] = True  # touches the border: the pixel beside it is carried over
+    spoilt = line * np.where(holes, 0.1, 1.0)
+    np.testing.assert_allclose(fill_holes(spoilt, holes, 1), line, atol=1e-6)
+    np.testing.assert_allclose(fill_holes(spoilt.T, holes.T, 0), line.T, atol=1e-6)
+    colour = np.dstack([spoilt] * 3)
+    np.testing.assert_allclose(fill_holes(colour, holes, 1), np.dstack([line] * 3), atol=1e-6)
+    grey = np.full((600, 800), 120, np.uint8)
+    rgb = np.dstack([grey] * 3)
+    assert laser_in_board(grey) and laser_in_board(rgb)
+    rgb[300:305, 100:700, 2] = 250  # a red line
+    assert not laser_in_board(rgb)
+
+
 # A grey single image with the laser line at several heights across the rows of points:
 # the points within its reach are dropped, every point kept is at the detection noise
 # (0.15 px: the ChArUco tolerance of test_rendered_captures; a displaced point is off by
