@@ -88,6 +88,19 @@ def test_find_captures_layouts(tmp_path):
     ]
     assert views[2].board is None and views[3].stripe is None
     assert ignored == ["notes.txt", "view_x.png"]
+    # a laser-off image beside a single image joins its view
+    (tmp_path / "view_0_off.png").write_bytes(b"")
+    views, _ = find_captures(tmp_path)
+    assert views[0].off.endswith("view_0_off.png") and views[0].layout == "single"
+    assert views[0].names == ("view_0.jpg", "view_0_off.png")
+    (tmp_path / "view_0_OFF.bmp").write_bytes(b"")
+    with pytest.raises(ValueError, match="two images .*view_0_OFF.bmp and view_0_off.png"):
+        find_captures(tmp_path)
+    (tmp_path / "view_0_OFF.bmp").unlink()
+    (tmp_path / "view_1_off.png").write_bytes(b"")  # beside a pair: its board is laser off
+    with pytest.raises(ValueError, match="view_1_off.png in .* no view_1.<ext>"):
+        find_captures(tmp_path)
+    (tmp_path / "view_1_off.png").unlink()
     (tmp_path / "view_0_board.png").write_bytes(b"")
     with pytest.raises(ValueError, match="view 0 has two images .*view_0.jpg and view_0_board"):
         find_captures(tmp_path)
@@ -141,22 +154,95 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     assert obs.pixel_pitch_mm is None
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="grey single-image circle-grid captures: the ridge-tested extractor no longer "
-    "puts centres on circle edges, but refuses the whole line on the board (no centres); "
-    "colour or laser-off pairs work",
-)
+def _scene_at(cam, target, frac, rot=183.0):
+    """As `_scene`, one pose, the laser line `frac` of a row pitch below the middle."""
+    rig = _CropRig(cam)
+    x0, x1, y0, y1 = target.extent_mm
+    pose = _focus_pose(cam, target, rot_deg=rot)
+
+    def to_px(xy):
+        X = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+        return rig.project(np.asarray(pose.apply(jnp.asarray(X))))[0]
+
+    xs = np.linspace(x0, x1, 400)
+    pitch = getattr(target, "square_mm", None) or target.spacing_mm
+    line = np.stack([xs, np.full_like(xs, 0.5 * (y0 + y1) + frac * pitch)], axis=1)
+    truth = types.SimpleNamespace(board_poses=[pose], stripe_px=[to_px(line)], scan_px=[])
+    return rig, truth, to_px(target.points_mm[:, :2])
+
+
 def test_single_grey_stripe_on_board(cam, tmp_path):
+    """A grey single image of a circle grid: the dots are bridged (`fill_holes`), the
+    line is found between them on the renderer's exact line, and the dots it passes
+    near are dropped."""
     target = CircleGrid(7, 6, 0.2, 0.08)
-    rig, truth, _ = _scene(cam, target)
+    rig, truth, corners = _scene(cam, target)
     write_scene_images(tmp_path, rig, target, truth, layout="single", seed=1)
-    obs, _ = detect_captures(tmp_path, target)
+    obs, report = detect_captures(tmp_path, target)
     line = truth.stripe_px[0]
     st = obs.views[0].stripe_px
+    # the rendered line stops dead at the pattern's edge: its last 6 px are not judged
     st = st[(st[:, 0] > line[:, 0].min() + 6) & (st[:, 0] < line[:, 0].max() - 6)]
-    on = _near_line(st, line) < 0.5
-    assert on.sum() > 0.3 * np.ptp(line[:, 0]) and on.mean() > 0.9, (on.sum(), on.mean())
+    d = _near_line(st, line)
+    # between the dots (about half the line: dots and their margins take the rest) every
+    # centre is on the exact line within 0.1 px, the pair layout's tolerance
+    assert len(st) > 0.3 * np.ptp(line[:, 0]) and d.max() < 0.1, (len(st), d.max())
+    v = obs.views[0]
+    assert np.hypot(*(v.corners_px - corners[0])[v.corner_mask].T).max() < 0.05
+    # the dots the line passes within 6 px of their edge (radius 13.6 px) are displaced
+    # by more than 0.1 px (0.4 px at 5 px): none of them is kept
+    assert not v.corner_mask[_near_line(corners[0], line) < 20].any()
+
+
+def test_fill_holes_and_laser_in_board():
+    """`fill_holes` continues a line running along the bridging axis exactly (straight
+    interpolation of a profile that does not change along it), on either axis and at
+    the border; `laser_in_board` tells grey (or grey saved as colour) from a colour
+    laser."""
+    from scheimflux.capture import fill_holes
+    from scheimflux.capture._laser import laser_in_board
+
+    line = np.zeros((50, 60), np.float32)
+    line[20:25] = np.array([0.2, 0.7, 1.0, 0.7, 0.2])[:, None]
+    holes = np.zeros((50, 60), bool)
+    holes[10:40, 20:40] = True
+    holes[0:30, 55:] = True  # touches the border: the pixel beside it is carried over
+    spoilt = line * np.where(holes, 0.1, 1.0)
+    np.testing.assert_allclose(fill_holes(spoilt, holes, 1), line, atol=1e-6)
+    np.testing.assert_allclose(fill_holes(spoilt.T, holes.T, 0), line.T, atol=1e-6)
+    colour = np.dstack([spoilt] * 3)
+    np.testing.assert_allclose(fill_holes(colour, holes, 1), np.dstack([line] * 3), atol=1e-6)
+    grey = np.full((600, 800), 120, np.uint8)
+    rgb = np.dstack([grey] * 3)
+    assert laser_in_board(grey) and laser_in_board(rgb)
+    rgb[300:305, 100:700, 2] = 250  # a red line
+    assert not laser_in_board(rgb)
+
+
+# A grey single image with the laser line at several heights across the rows of points:
+# the points within its reach are dropped, every point kept is at the detection noise
+# (0.15 px: the ChArUco tolerance of test_rendered_captures; a displaced point is off by
+# 0.3-2 px).
+@pytest.mark.parametrize(
+    "target",
+    [Checkerboard(7, 6, 0.2), CharucoBoard(8, 6, 0.2, 0.14), CircleGrid(7, 6, 0.2, 0.08)],
+    ids=["checkerboard", "charuco", "circles"],
+)
+def test_single_grey_points_near_laser_dropped(cam, tmp_path, target):
+    kept = 0
+    for i, frac in enumerate((0.1, 0.3, 0.45)):
+        rig, truth, corners = _scene_at(cam, target, frac)
+        folder = tmp_path / str(i)
+        write_scene_images(folder, rig, target, truth, layout="single", seed=i)
+        obs, _ = detect_captures(folder, target)
+        v = obs.views[0]
+        m = v.corner_mask
+        err = np.hypot(*(v.corners_px - corners)[m].T)
+        assert err.max() < 0.15, (frac, err.max())
+        kept += m.sum()
+    # at most the two rows next to the line go (a row pitch is ~68 px, the reach ~30 px)
+    rows = len(np.unique(target.points_mm[:, 1]))
+    assert kept >= 3 * len(corners) * (rows - 2) / rows
 
 
 def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
@@ -202,6 +288,65 @@ def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
     assert "view 0 has two images for one purpose" in capsys.readouterr().err
     assert main(base[:1] + [str(tmp_path / "none")] + base[2:]) == 1
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
+    """The path's shape, fast: one folder mixing a pair, a colour JPEG, a grey image
+    with its laser-off image and a view without the target goes through `detect`, and
+    `calibrate` gets exactly what detect found (the solver is replaced by a recorder:
+    the solve itself is checked end to end by the slow tests below)."""
+    import shutil
+
+    import scheimflux.calibrate._calibrate as calibrate_module
+
+    board = CharucoBoard(8, 6, 0.2, 0.14)
+    rig, truth, corners = _scene(cam, board, rots=(183.0, 188.0, 178.0))
+    images, parts = tmp_path / "images", tmp_path / "parts"
+    kinds = [("pair", {}), ("single", dict(colour=True, ext="jpg")), ("single", {})]
+    for k, (layout, kw) in enumerate(kinds):
+        one = types.SimpleNamespace(board_poses=[truth.board_poses[k]],
+                                    stripe_px=[truth.stripe_px[k]], scan_px=[])  # fmt: skip
+        write_scene_images(parts / str(k), rig, board, one, layout=layout, seed=k, **kw)
+        if k == 2:  # its laser-off image: the same pose, no line
+            write_scene_images(parts / "off", rig, board, one, layout=layout, seed=9,
+                               laser_peak=0.0)  # fmt: skip
+            shutil.move(parts / "off" / "view_0.png", parts / "2" / "view_0_off.png")
+        for f in (parts / str(k)).glob("view_0*"):
+            images.mkdir(exist_ok=True)
+            shutil.move(f, images / f.name.replace("view_0", f"view_{k}"))
+    cv2.imwrite(str(images / "view_3.png"), np.full((600, 800), 90, np.uint8))
+    obs_path, cal = tmp_path / "obs.json", tmp_path / "cal.json"
+    argv = ["detect", str(images), "--target", "charuco", "--board", "8x6", "--square-mm",
+            "0.2", "--marker-mm", "0.14", "--out", str(obs_path)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    cap = capsys.readouterr()
+    assert "found in 3 of 4 view(s)" in cap.out and "view 3 (view_3.png) dropped" in cap.err
+    assert "no pixel pitch given (--pixel-pitch-mm)" in cap.err
+    obs = read_observations(obs_path)
+    assert [v.source for v in obs.views] == [
+        ("view_0_board.png", "view_0_stripe.png"), ("view_1.jpg",),
+        ("view_2.png", "view_2_off.png"),
+    ]  # fmt: skip
+    for v, c, line in zip(obs.views, corners, truth.stripe_px):
+        m = v.corner_mask
+        assert m.sum() >= 14 and np.hypot(*(v.corners_px - c)[m].T).max() < 0.15
+        assert len(v.stripe_px) > 100 and np.median(_near_line(v.stripe_px, line)) < 0.1
+    # the laser-off image makes the grey view as good as the pair: every corner found
+    assert obs.views[2].corner_mask.sum() == obs.views[0].corner_mask.sum()
+
+    got = []
+
+    def recorder(observations, **kwargs):
+        got.append(observations)
+        raise ValueError("recorded")
+
+    monkeypatch.setattr(calibrate_module, "calibrate", recorder)
+    argv = ["calibrate", str(obs_path), "--out", str(cal), "--model", "pinhole"]
+    assert main(argv) == 1 and not cal.exists()
+    assert "recorded" in capsys.readouterr().err
+    (seen,) = got
+    assert len(seen.views) == 3 and [d.view for d in seen.dropped] == [3]
+    np.testing.assert_array_equal(seen.views[1].corners_px, obs.views[1].corners_px)
 
 
 @pytest.mark.slow
@@ -273,3 +418,147 @@ def test_observations_sources_dropped_and_optional_pitch(tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match=r"dropped_views\[0\].view must be a view number"):
         read_observations(path)
+
+
+# ------------------------------------------------------------------ end to end, per target
+# Every target in both layouts, as a user would shoot them: pair (board laser off + stripe
+# image), single colour (the laser on one channel), single grey with a laser-off image of
+# the same pose beside it (`view_<k>_off`), single grey alone. 15 ray-traced poses of the
+# paper's x1.5 rig, some partly outside the image (a checkerboard or circle grid must be
+# seen whole, ChArUco counts partly visible boards); default `detect`, default
+# `calibrate`, judged against the renderer's truth.
+E2E_TARGETS = {
+    "checkerboard": (Checkerboard(11, 8, 0.3), ["--board", "11x8", "--square-mm", "0.3"]),
+    "charuco": (
+        CharucoBoard(12, 9, 0.3, 0.21, "DICT_4X4_100"),
+        ["--target", "charuco", "--board", "12x9", "--square-mm", "0.3", "--marker-mm",
+         "0.21", "--dictionary", "DICT_4X4_100"],
+    ),  # fmt: skip
+    "circles": (
+        CircleGrid(11, 8, 0.3, 0.12),
+        ["--target", "circles", "--board", "11x8", "--spacing-mm", "0.3",
+         "--circle-diameter-mm", "0.12"],
+    ),  # fmt: skip
+    "acircles": (
+        CircleGrid(6, 11, 0.25, 0.12, asymmetric=True),
+        ["--target", "acircles", "--board", "6x11", "--spacing-mm", "0.25",
+         "--circle-diameter-mm", "0.12"],
+    ),  # fmt: skip
+}
+E2E_LAYOUTS = {  # write_scene_images options, and whether a laser-off image is added
+    "pair": (dict(layout="pair"), False),
+    "single-colour-jpg": (dict(layout="single", colour=True, ext="jpg"), False),
+    "single-grey-off": (dict(layout="single"), True),
+    "single-grey": (dict(layout="single"), False),
+}
+
+
+def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_main=None):
+    """Render, `detect`, `calibrate` (real CLI, real files) and measure against truth.
+
+    **Returns:** a dict of the numbers the docs table records."""
+    from scheimflux.io._calibration import read_calibration
+    from scheimflux.simulate import paper_rig, simulate_observations
+
+    run = argv_main or main
+    target, target_argv = E2E_TARGETS[target_name]
+    write_kw, laser_off = E2E_LAYOUTS[layout_name]
+    rig = paper_rig(refine=False)
+    _, truth = simulate_observations(rig, target, n_views=n_views, stage_scan=False, seed=seed)
+    images = tmp_path / "images"
+    write_scene_images(images, rig, target, truth, seed=seed, **write_kw)
+    if laser_off:  # the same poses, the laser off (other noise)
+        write_scene_images(tmp_path / "off", rig, target, truth, seed=seed + 1,
+                           laser_peak=0.0, **write_kw)  # fmt: skip
+        for k in range(n_views):
+            (tmp_path / "off" / f"view_{k}.png").rename(images / f"view_{k}_off.png")
+    obs_path, cal = tmp_path / "obs.json", tmp_path / "cal.json"
+    argv = ["detect", str(images), *target_argv, "--out", str(obs_path),
+            "--pixel-pitch-mm", "0.0044", "0.0044"]  # fmt: skip
+    assert run(argv) == 0
+    obs = read_observations(obs_path)
+    kept = [int(v.source[0].split("_")[1].split(".")[0]) for v in obs.views]
+    seen = np.isfinite(truth.corners_px).all(axis=2)
+    # the detection noise floor: RMS per coordinate (as calibrate's reprojection RMS) of
+    # detected - exact ray-traced points
+    err = np.concatenate(
+        [(v.corners_px - truth.corners_px[k])[v.corner_mask] for v, k in zip(obs.views, kept)]
+    )
+    floor = float(np.sqrt(np.mean(err**2)))
+    worst = float(np.hypot(*err.T).max())
+    # stripe centres against the exact line of their view (each view's truth polyline)
+    d = np.concatenate(
+        [_near_line(v.stripe_px, truth.stripe_px[k]) for v, k in zip(obs.views, kept)
+         if len(v.stripe_px)]
+    )  # fmt: skip
+    assert run(["calibrate", str(obs_path), "--out", str(cal)]) == 0
+    loaded = read_calibration(cal)
+    diag = loaded.diagnostics
+    # 3-D: the exact stripe pixels of every view through the calibration, against the
+    # exact points. The model's camera frame has the ray tracer's axes but its origin on
+    # another principal point (24 mm along z on this lens): only that shift is taken out
+    # (a rotation fitted as well would align the two planar point sets exactly).
+    px = np.concatenate([truth.stripe_px[k] for k in kept])
+    Xt = np.concatenate([truth.stripe_c[k] for k in kept])
+    X = np.asarray(sf.stripe_to_camera(loaded.camera, loaded.plane, jnp.asarray(px)).points)
+    ok = np.all(np.isfinite(X), axis=1)
+    res3d = np.linalg.norm(X[ok] + (Xt[ok] - X[ok]).mean(axis=0) - Xt[ok], axis=1)
+    # the plane: the calibrated normal against the true one (same axes)
+    n_cal = np.asarray(loaded.plane.n, np.float64)
+    n_true = np.asarray(truth.laser_plane, np.float64)
+    plane_deg = float(np.degrees(np.arctan2(np.linalg.norm(np.cross(n_cal, n_true)),
+                                            abs(n_cal @ n_true))))  # fmt: skip
+    return dict(
+        views=f"{len(obs.views)}/{n_views}",
+        seen_whole=int(seen.all(axis=1).sum()),
+        points=int(sum(v.corner_mask.sum() for v in obs.views)),
+        floor_px=floor,
+        worst_px=worst,
+        stripe_n=int(len(d)),
+        stripe_on=float(np.mean(d < 0.5)),
+        stripe_rms_px=float(np.sqrt(np.mean(d[d < 0.5] ** 2))),
+        converged=diag["converged"],
+        rms_px=float(diag["reprojection_rms_px"]),
+        plane_deg=plane_deg,
+        rms3d_um=float(np.sqrt(np.mean(res3d**2)) * 1e3),
+        max3d_um=float(res3d.max() * 1e3),
+        n_kept=len(obs.views),
+    )
+
+
+# cases measured short of the bounds below (docs/capture.md's table)
+E2E_SHORT = {
+    ("circles", "single-grey"): "grey single image of a circle grid, no laser-off image: "
+    "converged at the floor (0.0078 / 0.0084 px), but 5.9 % of the stripe centres are "
+    "over 0.5 px off the line, plane 0.042 deg, 3-D 0.57 um RMS, 2 of 9 whole views lost",
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("layout_name", list(E2E_LAYOUTS))
+@pytest.mark.parametrize("target_name", list(E2E_TARGETS))
+def test_end_to_end(tmp_path, capsys, request, target_name, layout_name):
+    """Default `detect`, then default `calibrate`, on rendered captures (see E2E_TARGETS;
+    the numbers of docs/capture.md's table come from here)."""
+    short = E2E_SHORT.get((target_name, layout_name))
+    if short:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=short))
+    r = end_to_end(tmp_path, target_name, layout_name)
+    print(target_name, layout_name, r)
+    assert r["converged"] is True
+    # a model that fits leaves residuals at the noise floor (a little below it: the fit
+    # absorbs p parameters of 2N); 10 % above it is the issue's acceptance bound
+    assert r["rms_px"] <= 1.1 * r["floor_px"]
+    # no detected point off its truth by more than 0.5 px (the laser in grey images)
+    assert r["worst_px"] < 0.5
+    # stripe centres: nearly all on the exact line
+    assert r["stripe_on"] > 0.98 and r["stripe_rms_px"] < 0.1
+    # 3-D: one object-space pixel is 4.4 um / 1.5 = 2.9 um; points 0.1 px off their
+    # line give 0.3 um, the line's plane from ~10 views averages far below. 0.5 um and
+    # 0.01 deg (0.5 um over 3 mm) bound a correct calibration with a wide margin and
+    # fail a wrong plane or scale (a 0.1 % scale error alone is 3 um at 3 mm).
+    assert r["rms3d_um"] < 0.5 and r["plane_deg"] < 0.01
+    if target_name == "charuco":
+        assert r["n_kept"] >= 14  # partly visible boards count
+    else:  # whole-or-nothing targets: every view seen whole is kept
+        assert r["n_kept"] == r["seen_whole"]

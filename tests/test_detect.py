@@ -170,14 +170,22 @@ def test_cli_detect(tmp_path, cam, capsys):
     doc = json.loads(out.read_text())
     assert doc["dropped_views"][0]["reason"].startswith("view_2_board.png cannot be read")
 
-    # refuses to overwrite; then a different sensor size is an error naming the file
+    # refuses to overwrite; then an image or a scan frame of another size is left out,
+    # named, and the rest kept
     before = out.read_bytes()
     assert main(argv) == 1
     assert "exists" in capsys.readouterr().err
-    cv2.imwrite(str(images / "view_3_board.png"), np.zeros((100, 100), np.uint8))
-    assert main(argv + ["--overwrite"]) == 1
-    assert "view_3_board.png is 100x100 px" in capsys.readouterr().err
     assert out.read_bytes() == before
+    cv2.imwrite(str(images / "view_3_board.png"), np.zeros((100, 100), np.uint8))
+    cv2.imwrite(str(scan / "frame3.png"), np.zeros((100, 100), np.uint8))
+    assert main(argv + ["--overwrite"]) == 0
+    err = capsys.readouterr().err
+    assert ("view 3 (view_3_board.png) dropped: view_3_board.png is 100x100 px but "
+            "view_0_board.png is 800x600 px (not the same sensor)") in err  # fmt: skip
+    assert "scan frame frame3.png is 100x100 px" in err and "kept as an empty frame" in err
+    again = read_observations(out)
+    assert [d.view for d in again.dropped] == [2, 3, 10, 11] and len(again.views) == 2
+    assert len(again.stage.frames) == 4 and len(again.stage.frames[3]) == 0
 
 
 def test_cli_detect_nothing_found(tmp_path, capsys):

@@ -7,8 +7,15 @@ from ._folder import (
     find_captures as find_captures,
     read_image as read_image,
 )
+from ._laser import (
+    fill_holes as fill_holes,
+    near_laser as near_laser,
+    off_local_grid as off_local_grid,
+    target_holes as target_holes,
+)
 from ._preview import write_preview as write_preview
 from ._region import board_region as board_region, board_stripe as board_stripe
+from ._session import detect_session as detect_session
 from ._workflow import (
     CaptureReport as CaptureReport,
     detect_captures as detect_captures,

@@ -6,7 +6,12 @@ Per board pose (view) `k = 0, 1, 2, ...` a folder holds either
 - a pair: `view_<k>_board.<ext>` (laser off) and `view_<k>_stripe.<ext>` (laser on, the
   board in the same pose; layout `"pair"`),
 
-with `<ext>` one of `png`, `jpg`, `jpeg`, `tif`, `tiff`, `bmp` (any case). Views are
+and, beside a single image, optionally `view_<k>_off.<ext>`: the same pose with the laser
+off (room light as in `view_<k>`). With it the target is detected in a laser-free image
+and the line is extracted from the difference (`extract_stripe(..., background=)`),
+which is what makes grey single-image captures as good as pairs.
+
+`<ext>` is one of `png`, `jpg`, `jpeg`, `tif`, `tiff`, `bmp` (any case). Views are
 sorted by the number `k` (view_2 before view_10); the numbers need not be contiguous.
 The two layouts may be mixed across views, not within one view. Any other file is
 ignored (and listed).
@@ -24,7 +29,7 @@ import numpy as np
 __all__ = ["IMAGE_SUFFIXES", "CaptureView", "find_captures", "natural_key", "read_image"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-_VIEW = re.compile(r"^view_(\d+)(?:_(board|stripe))?\.(png|jpe?g|tiff?|bmp)$", re.IGNORECASE)
+_VIEW = re.compile(r"^view_(\d+)(?:_(board|stripe|off))?\.(png|jpe?g|tiff?|bmp)$", re.IGNORECASE)
 
 
 def natural_key(name: str) -> list:
@@ -42,11 +47,14 @@ class CaptureView:
       `view_<k>_board.<ext>`); None when only a stripe image exists.
     - `stripe`: path of the image the laser line is extracted from (the same file as
       `board` in the single-image layout); None when a pair lacks its stripe image.
+    - `off`: path of the laser-off image of a single-image view (`view_<k>_off.<ext>`),
+      or None.
     """
 
     view: int
     board: str | None
     stripe: str | None
+    off: str | None = None
 
     @property
     def layout(self) -> str:
@@ -56,7 +64,7 @@ class CaptureView:
     def names(self) -> tuple[str, ...]:
         """The distinct file names of the view (board first)."""
         out = []
-        for p in (self.board, self.stripe):
+        for p in (self.board, self.stripe, self.off):
             if p is not None and os.path.basename(p) not in out:
                 out.append(os.path.basename(p))
         return tuple(out)
@@ -67,8 +75,9 @@ def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[st
 
     **Returns:** `(views, ignored)`: views sorted by number, ignored file names in
     natural order. Raises `ValueError` naming the files when a view has two images of one
-    kind (e.g. `view_3.png` and `view_3.jpg`, or `view_3.png` and `view_3_board.png`),
-    and `NotADirectoryError`/`FileNotFoundError` for a missing folder.
+    kind (e.g. `view_3.png` and `view_3.jpg`, or `view_3.png` and `view_3_board.png`) or
+    a laser-off image without its single image (`view_3_off.png` beside a pair, or
+    alone), and `NotADirectoryError`/`FileNotFoundError` for a missing folder.
     """
     folder = os.fspath(folder)
     if not os.path.exists(folder):
@@ -85,9 +94,12 @@ def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[st
             continue
         k, kind = int(m.group(1)), (m.group(2) or "single").lower()
         slot = slots.setdefault(k, {})
-        clash = slot.get(kind) or (slot.get("single") if kind != "single" else None)
-        if clash is None and kind == "single":
-            clash = slot.get("board") or slot.get("stripe")
+        if kind == "off":
+            clash = slot.get("off")
+        elif kind == "single":
+            clash = slot.get("single") or slot.get("board") or slot.get("stripe")
+        else:
+            clash = slot.get(kind) or slot.get("single")
         if clash is not None:
             raise ValueError(
                 f"view {k} has two images for one purpose in {folder}: "
@@ -96,8 +108,14 @@ def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[st
         slot[kind] = path
     views = []
     for k, slot in sorted(slots.items()):
+        if "off" in slot and "single" not in slot:
+            raise ValueError(
+                f"{os.path.basename(slot['off'])} in {folder} is a laser-off image for the "
+                f"single-image layout, but there is no view_{k}.<ext> (a pair's board image "
+                "is already laser off: remove it or rename the view)"
+            )
         if "single" in slot:
-            views.append(CaptureView(k, slot["single"], slot["single"]))
+            views.append(CaptureView(k, slot["single"], slot["single"], slot.get("off")))
         else:
             views.append(CaptureView(k, slot.get("board"), slot.get("stripe")))
     return views, ignored

@@ -77,26 +77,48 @@ def board_region(
     return mask.astype(bool), hull
 
 
-def board_stripe(image: Any, mask: np.ndarray, *, width_px: float | None = None):
+def board_stripe(
+    image: Any,
+    mask: np.ndarray,
+    *,
+    width_px: float | None = None,
+    background: Any = None,
+    holes: np.ndarray | None = None,
+):
     """The laser line on the board: `extract_stripe` inside the board region `mask`
-    (colour images: the laser's channel, chosen by the extractor).
+    (colour images: the laser's channel, chosen by the extractor), in the difference
+    from the laser-off image `background` when there is one.
 
     This is the single place where `detect` extracts board stripes. The extractor accepts
     ridges only (checker edges, dots and marker borders are refused) and returns no centre
-    outside `mask`.
+    outside `mask`. `holes` (`(H, W)` bool, e.g. the dots of a circle grid in a grey
+    single image, `target_holes`) are bridged along rows, then along columns
+    (`fill_holes`), so the line is tracked as one; the bridging that keeps more centres
+    wins, and no centre inside a hole is kept.
 
     **Returns:** `(StripeResult, inside)`: `inside` `(N,)` bool marks the centres on the
-    board region. Raises `ValueError` when nothing can be extracted.
+    board region and off the holes. Raises `ValueError` when nothing can be extracted.
     """
     from ..stripe import extract_stripe
+    from ._laser import fill_holes
 
     if not np.any(mask):
         raise ValueError("empty board region")
-    result = extract_stripe(image, width_px=width_px, mask=mask)
-    uv = result.uv
-    inside = np.zeros(len(uv), bool)
-    fin = np.all(np.isfinite(uv), axis=1)
-    iu = np.clip(np.rint(uv[fin, 0]).astype(int), 0, mask.shape[1] - 1)
-    iv = np.clip(np.rint(uv[fin, 1]).astype(int), 0, mask.shape[0] - 1)
-    inside[fin] = mask[iv, iu]
-    return result, inside
+    keep = mask if holes is None else mask & ~holes
+    if holes is None or not holes.any():
+        candidates = [image]
+    else:
+        candidates = [fill_holes(image, holes, axis) for axis in (1, 0)]
+    best = None
+    for img in candidates:
+        result = extract_stripe(img, width_px=width_px, mask=mask, background=background)
+        uv = result.uv
+        inside = np.zeros(len(uv), bool)
+        fin = np.all(np.isfinite(uv), axis=1)
+        iu = np.clip(np.rint(uv[fin, 0]).astype(int), 0, mask.shape[1] - 1)
+        iv = np.clip(np.rint(uv[fin, 1]).astype(int), 0, mask.shape[0] - 1)
+        inside[fin] = keep[iv, iu]
+        n = int((inside & result.valid).sum())
+        if best is None or n > best[0]:
+            best = (n, result, inside)
+    return best[1], best[2]

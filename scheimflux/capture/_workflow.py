@@ -7,8 +7,9 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 - the target is not found, or fewer than `min_points` of its points are (ChArUco), or
   they lie on one line.
 A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
-its target points with an empty stripe list (a note says so). Images of another size
-than the first one are an error (they cannot come from one sensor).
+its target points with an empty stripe list (a note says so). A view with an image of
+another size than the first one read is dropped too (it cannot come from the same
+sensor), naming the file and both sizes: what the other views gave is kept.
 """
 
 from __future__ import annotations
@@ -20,8 +21,11 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..io._observations import DroppedView, Nominal, Observations, StageScan, View
+from ..targets._circles import CircleGrid
+from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
+from ._laser import laser_in_board, near_laser, off_local_grid, target_holes
 from ._region import board_region, board_stripe, laser_free
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
@@ -51,15 +55,17 @@ class _SizeCheck:
         self.shape: tuple[int, int] | None = None
         self.first = ""
 
-    def __call__(self, image: np.ndarray, path: str) -> None:
+    def mismatch(self, image: np.ndarray, path: str) -> str:
+        """"" when `image` has the size of the first one seen, else why not."""
         if self.shape is None:
             self.shape, self.first = image.shape[:2], os.path.basename(path)
         elif image.shape[:2] != self.shape:
             h, w = image.shape[:2]
-            raise ValueError(
-                f"{path} is {w}x{h} px but {self.first} is {self.shape[1]}x{self.shape[0]} px; "
-                "all images must come from the same sensor"
+            return (
+                f"{os.path.basename(path)} is {w}x{h} px but {self.first} is "
+                f"{self.shape[1]}x{self.shape[0]} px (not the same sensor)"
             )
+        return ""
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -72,6 +78,33 @@ def _default_margin(uv: np.ndarray, target: Target) -> float:
     span_px = float(np.ptp(uv[ok], axis=0).max())
     pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
     return max(3.0, 0.5 * pitch * span_px / max(span_mm, 1e-12))
+
+
+def _too_few(res, target, min_points: int) -> str:
+    """Why a detection cannot be used ("" when it can)."""
+    n = int(res.mask.sum())
+    if not res.found:
+        return res.message or f"{target.kind} not found"
+    if n < min_points:
+        return f"only {n} target points found; {min_points} needed"
+    return ""
+
+
+def _hole_margin(uv: np.ndarray, target: Target, stripe_width_px: float | None) -> float:
+    """Growth of the dot holes beyond the dots' edges: a quarter of the gap between
+    neighbouring dots (half of it stays free for the line), at least twice a given
+    stripe width."""
+    if not isinstance(target, CircleGrid):
+        return 0.0
+    ok = np.all(np.isfinite(uv), axis=1)
+    xy = target.points_mm[ok, :2]
+    span_mm = float(np.ptp(xy, axis=0).max()) if ok.sum() >= 2 else 0.0
+    if span_mm <= 0:
+        return 3.0
+    px_per_mm = float(np.ptp(uv[ok], axis=0).max()) / span_mm
+    gap_mm = target.spacing_mm - target.diameter_mm
+    m = 0.25 * gap_mm * px_per_mm
+    return max(m, 2.0 * float(stripe_width_px)) if stripe_width_px is not None else m
 
 
 def detect_captures(
@@ -105,8 +138,8 @@ def detect_captures(
     - `on_view`: called as `on_view(k, message)` for each remark while running.
 
     **Returns:** `(observations, report)`. Raises `ValueError` when the folder has no
-    capture images, when images differ in size, or when the target is found in no view
-    (the message lists why for the first views).
+    capture images or when the target is found in no view (the message lists why for
+    the first views).
     """
     views_in, ignored = find_captures(folder)
     report = CaptureReport(ignored=ignored)
@@ -128,6 +161,10 @@ def detect_captures(
         report.dropped.append(d)
         say(cv.view, f"view {cv.view} ({', '.join(cv.names)}) dropped: {reason}")
 
+    def note(cv, text: str) -> None:
+        report.notes.append(f"view {cv.view}: {text}")
+        say(cv.view, f"view {cv.view}: {text}")
+
     for cv in views_in:
         if cv.board is None:
             drop(cv, "no board image (only a stripe image)")
@@ -136,14 +173,22 @@ def detect_captures(
         if image is None:
             drop(cv, f"{os.path.basename(cv.board)} cannot be read or decoded")
             continue
-        size(image, cv.board)
-        res = detect_target(laser_free(image), target, mirrored=mirrored)
-        n = int(res.mask.sum())
-        reason = ""
-        if not res.found:
-            reason = res.message or f"{target.kind} not found"
-        elif n < min_points:
-            reason = f"only {n} target points found; {min_points} needed"
+        why = size.mismatch(image, cv.board)
+        if why:
+            drop(cv, why)
+            continue
+        off = None
+        if cv.off is not None:
+            off = read_image(cv.off)
+            if off is None:
+                note(cv, f"{os.path.basename(cv.off)} unreadable; detecting without it")
+            elif size.mismatch(off, cv.off):
+                drop(cv, size.mismatch(off, cv.off))
+                continue
+        # the target is detected in a laser-free image where there is one
+        res = detect_target(laser_free(image if off is None else off), target,
+                            mirrored=mirrored)  # fmt: skip
+        reason = _too_few(res, target, min_points)
         if reason:
             if preview_dir is not None:
                 report.previews.append(_preview(preview_dir, cv, image, res.corners_px, None,
@@ -151,44 +196,71 @@ def detect_captures(
             drop(cv, reason)
             continue
         if res.message:
-            report.notes.append(f"view {cv.view}: {res.message}")
-            say(cv.view, f"view {cv.view}: {res.message}")
+            note(cv, res.message)
+        corners = res.corners_px
         shape = image.shape[:2]
-        m = _default_margin(res.corners_px, target) if margin_px is None else float(margin_px)
+        m = _default_margin(corners, target) if margin_px is None else float(margin_px)
         mask, hull = board_region(
-            res.corners_px, shape, margin_px=m, board_xy_mm=xy, extent_mm=target.extent_mm
+            corners, shape, margin_px=m, board_xy_mm=xy, extent_mm=target.extent_mm
         )
         stripe_uv, stripe_res, simg = np.zeros((0, 2)), None, None
         if cv.stripe is None:
-            note = f"view {cv.view}: no stripe image (view_{cv.view}_stripe.<ext>); no stripe"
-            report.notes.append(note)
-            say(cv.view, note)
+            note(cv, f"no stripe image (view_{cv.view}_stripe.<ext>); no stripe")
         else:
             simg = image if cv.stripe == cv.board else read_image(cv.stripe)
             if simg is None:
-                note = f"view {cv.view}: {os.path.basename(cv.stripe)} unreadable; no stripe"
-                report.notes.append(note)
-                say(cv.view, note)
+                note(cv, f"{os.path.basename(cv.stripe)} unreadable; no stripe")
+            elif size.mismatch(simg, cv.stripe):
+                drop(cv, size.mismatch(simg, cv.stripe))
+                continue
             else:
-                size(simg, cv.stripe)
+                # one grey image of target and line (no laser-off image): keep the line
+                # out of the dots, and the points out of the line's reach (_laser.py)
+                shared = cv.layout == "single" and off is None and laser_in_board(image)
+                holes = None
+                if shared:
+                    grow = _hole_margin(corners, target, stripe_width_px)
+                    holes = target_holes(target, corners, shape, margin_px=grow)
                 try:
-                    stripe_res, inside = board_stripe(simg, mask, width_px=stripe_width_px)
+                    stripe_res, inside = board_stripe(
+                        simg, mask, width_px=stripe_width_px, background=off, holes=holes
+                    )
                     ok = stripe_res.valid & inside
                     stripe_uv = stripe_res.uv[ok]
                 except ValueError as err:
-                    note = f"view {cv.view}: no stripe extracted: {err}"
-                    report.notes.append(note)
-                    say(cv.view, note)
+                    note(cv, f"no stripe extracted: {err}")
                 if len(stripe_uv) == 0 and stripe_res is not None:
-                    note = f"view {cv.view}: no laser line found on the board"
-                    report.notes.append(note)
-                    say(cv.view, note)
+                    note(cv, "no laser line found on the board")
+                if shared:
+                    hit = off_local_grid(target, corners)
+                    if len(stripe_uv):
+                        w = stripe_res.width[ok]
+                        w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0
+                        if stripe_width_px is not None:
+                            w = max(w, float(stripe_width_px))
+                        hit |= near_laser(target, corners, stripe_uv, w,
+                                          orientation=stripe_res.orientation)  # fmt: skip
+                    if hit.any():
+                        corners = corners.copy()
+                        corners[hit] = np.nan
+                        note(cv, f"{int(hit.sum())} point(s) within the laser line's reach "
+                                 "or off their local grid dropped (grey single image)")  # fmt: skip
+                        res = DetectionResult(corners, True, res.message)
+                        reason = _too_few(res, target, min_points)
+                        if reason:
+                            if preview_dir is not None:
+                                report.previews.append(
+                                    _preview(preview_dir, cv, image, corners, hull, stripe_res,
+                                             mask, reason)
+                                )  # fmt: skip
+                            drop(cv, reason + " (the others lie under the laser line)")
+                            continue
         if preview_dir is not None:
             report.previews.append(
-                _preview(preview_dir, cv, simg if simg is not None else image, res.corners_px,
+                _preview(preview_dir, cv, simg if simg is not None else image, corners,
                          hull, stripe_res, mask, "")
             )  # fmt: skip
-        views.append(View(res.corners_px, stripe_uv, cv.names))
+        views.append(View(corners, stripe_uv, cv.names))
         report.kept.append(cv.view)
 
     if not views:
@@ -227,11 +299,11 @@ def extract_scan(
     on_frame: Callable[[str], None] | None = None,
 ) -> StageScan:
     """The rotary-stage scan of a gauge: every image in `folder`, in natural name order,
-    is one frame. An unreadable frame or one without a line is kept as an empty frame (so
-    frame indices stay right) and reported through `on_frame`.
+    is one frame. An unreadable frame, one of another size than `shape` (or than the
+    first frame) or one without a line is kept as an empty frame (so frame indices stay
+    right) and reported through `on_frame`.
 
-    Raises `ValueError` when the folder holds no images or a frame's size differs from
-    `shape`.
+    Raises `ValueError` when the folder holds no images.
     """
     from ..stripe import extract_stripe
 
@@ -257,7 +329,11 @@ def extract_scan(
             say(f"unreadable scan frame {name} kept as an empty frame")
             frames.append(np.zeros((0, 2)))
             continue
-        size(image, path)
+        why = size.mismatch(image, path)
+        if why:
+            say(f"scan frame {why}: kept as an empty frame")
+            frames.append(np.zeros((0, 2)))
+            continue
         try:
             frames.append(extract_stripe(image, width_px=stripe_width_px).valid_uv)
         except ValueError as err:

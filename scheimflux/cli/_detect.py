@@ -6,7 +6,9 @@ File naming in IMAGES_DIR, per board pose (view) k = 0, 1, 2, ... either
   view_<k>.<ext>          one image with the board and the laser line on it, or
   view_<k>_board.<ext>    the board, laser off, and
   view_<k>_stripe.<ext>   the laser line on the board in the same pose;
-<ext>: png, jpg, jpeg, tif, tiff or bmp (grey or colour, 8 or 16 bits). Views are
+beside a single image optionally view_<k>_off.<ext>, the same pose with the laser off
+(the target is then detected in it and the line found in the difference: best for grey
+cameras). <ext>: png, jpg, jpeg, tif, tiff or bmp (grey or colour, 8 or 16 bits). Views are
 sorted by the number <k> (view_2 before view_10). Other files are ignored (and listed).
 
 Targets (--target): checkerboard (--board = inner corners COLSxROWS), charuco (--board =
@@ -51,7 +53,9 @@ def register(subparsers) -> None:
         epilog="\n\n".join(__doc__.split("\n\n")[1:]),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("images_dir", metavar="IMAGES_DIR", help="folder of view_<k>[_board|_stripe].*")
+    p.add_argument(
+        "images_dir", metavar="IMAGES_DIR", help="folder of view_<k>[_board|_stripe|_off].*"
+    )
     p.add_argument(
         "--target",
         choices=TARGET_KINDS,
@@ -158,10 +162,8 @@ def _check_args(args) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from ..capture._workflow import detect_captures, extract_scan
-    from ..io._observations import Nominal, write_observations
+    from ..capture._session import detect_session
+    from ..io._observations import write_observations
     from ..targets._target import make_target
 
     _check_args(args)
@@ -173,40 +175,23 @@ def run(args: argparse.Namespace) -> int:
         dictionary=args.dictionary,
         diameter_mm=args.circle_diameter_mm,
     )
-    nominal = None
-    if args.focal_length_mm is not None or args.magnification is not None or args.tilt_deg:
-        nominal = Nominal(
-            args.focal_length_mm,
-            args.magnification,
-            None if args.tilt_deg is None else tuple(args.tilt_deg),
-        )
-    obs, report = detect_captures(
+    obs, report = detect_session(
         args.images_dir,
         target,
         pixel_pitch_mm=args.pixel_pitch_mm,
-        nominal=nominal,
+        focal_length_mm=args.focal_length_mm,
+        magnification=args.magnification,
+        tilt_deg=args.tilt_deg,
+        scan=args.scan,
+        delta_omega_deg=args.delta_omega_deg,
+        gauge_radius_mm=args.gauge_radius_mm,
         stripe_width_px=args.stripe_width_px,
         margin_px=args.board_margin_px,
         min_points=args.min_points,
         mirrored=args.mirrored,
         preview_dir=args.preview,
-        on_view=lambda k, m: _report(m),
+        on_note=_report,
     )
-    if report.ignored:
-        shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
-        _report(f"ignored {len(report.ignored)} file(s) not named like a capture: {shown}")
-    if args.scan is not None:
-        stage = extract_scan(
-            args.scan,
-            args.delta_omega_deg,
-            args.gauge_radius_mm,
-            stripe_width_px=args.stripe_width_px,
-            shape=(obs.height, obs.width),
-            on_frame=_report,
-        )
-        obs = dataclasses.replace(obs, stage=stage)
-    if obs.pixel_pitch_mm is None:
-        _report("no --pixel-pitch-mm given: none recorded (the thick-lens model needs it)")
     write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in obs.views)
     n_points = sum(int(v.corner_mask.sum()) for v in obs.views)

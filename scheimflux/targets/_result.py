@@ -81,6 +81,38 @@ def to_uint8(norm: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(norm, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def grid_residuals(
+    uv: np.ndarray, xy_mm: np.ndarray, pitch_mm: float, *, reach: float = 2.5
+) -> np.ndarray:
+    """Each found point's distance (px) from its prediction by the homography of the
+    found points within `reach` pitches of it on the board (RANSAC, then least squares
+    on its inliers; the point itself left out). Over so small a patch lens distortion
+    bends the grid by far less than a pixel, so the residual is the detection noise
+    unless something (a marker misread, a laser line or a glint) moved the point.
+
+    **Returns:** `(M,)` residuals, NaN where a point was not found or has fewer than 6
+    found neighbours (or fewer than 8 points are found at all).
+    """
+    ok = np.all(np.isfinite(uv), axis=1)
+    idx = np.flatnonzero(ok)
+    out = np.full(len(uv), np.nan)
+    if idx.size < 8:
+        return out
+    xy = np.asarray(xy_mm, np.float64)[idx, :2]
+    pts = uv[idx]
+    dist = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=-1)
+    for a in range(len(idx)):
+        near = np.flatnonzero((dist[a] <= reach * pitch_mm) & (np.arange(len(idx)) != a))
+        if near.size < 6:
+            continue
+        Hm, _ = cv2.findHomography(xy[near], pts[near], cv2.RANSAC, 0.25)
+        if Hm is None:
+            continue
+        pred = cv2.perspectiveTransform(xy[a][None, None], Hm)[0, 0]
+        out[idx[a]] = float(np.linalg.norm(pred - pts[a]))
+    return out
+
+
 def reject_off_grid(
     uv: np.ndarray, xy_mm: np.ndarray, pitch_mm: float, *, reach: float = 2.5
 ) -> tuple[np.ndarray, int]:
