@@ -115,7 +115,11 @@ def test_mask_ignores_the_laser_elsewhere():
     inner = region_mask(truth.region_px, SHAPE, margin_px=0.0)
     both = res.valid & poly.valid
     assert both.sum() >= 0.9 * poly.valid.sum()
-    np.testing.assert_allclose(res.uv[both], poly.uv[both], atol=1e-9)
+    # Steger's centres are identical; centres from the Gaussian-times-step fit (a checker
+    # edge under the line) hold width and edge blur at local medians over the accepted
+    # fits, which depend on the region's extent by a few thousandths of a pixel.
+    np.testing.assert_allclose(res.uv[both], poly.uv[both], atol=0.01)
+    assert np.mean(np.all(np.abs(res.uv[both] - poly.uv[both]) < 1e-9, axis=1)) >= 0.8
     assert inner.sum() < mask.sum()
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import math
 import os
 from collections.abc import Iterable
@@ -15,11 +16,13 @@ from ._centroid import centroid_band
 from ._channel import pick_channel
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, as_image, channel_image, estimate_noise
+from ._kernels import FWHM_PER_SIGMA
 from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._steger import ScanLines, steger_band, steger_full
+from ._stepfit import MAX_SIGMA_C, fit_step_profiles, profile_window
 
 _METHODS = ("steger", "centroid")
 _ORIENTATIONS = ("auto", "vertical-scan", "horizontal-scan")
@@ -30,6 +33,12 @@ _DEFAULT_WIDTH = 5.0
 # than this fraction of its height has a brightness step under it (an albedo edge, the
 # rim of a glint), which pulls the centre: rejected. A symmetric line gives 0 plus noise.
 ASYMMETRY_MAX = 0.12
+# With a laser-off frame, a laser-on-only centre replaces the difference's when both
+# are accepted and agree to this (px).
+PICK_AGREE_PX = 0.5
+# Accepted centres whose profile asymmetry exceeds this are re-measured by the
+# Gaussian-times-step fit (kept as they are when that fit is refused).
+ASYMMETRY_REFIT = 0.05
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
@@ -111,6 +120,72 @@ def _albedo_normalised(diff: np.ndarray, off: np.ndarray) -> np.ndarray:
     return diff * (max(typical, floor) / np.maximum(smooth, floor))
 
 
+def _local_median(x: np.ndarray, ok: np.ndarray, values: np.ndarray, reach: float = 150.0):
+    """Median of `values[ok]` over the entries within `reach` scan lines of each `x`
+    (sorted), the global median where a window holds fewer than 5."""
+    xs, vs = x[ok], values[ok]
+    out = np.full(x.size, float(np.median(vs)))
+    lo = np.searchsorted(xs, x - reach)
+    hi = np.searchsorted(xs, x + reach)
+    for i in np.flatnonzero(hi - lo >= 5):
+        out[i] = np.median(vs[lo[i] : hi[i]])
+    return out
+
+
+def _refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
+    """Centres with an albedo edge under the line, from the Gaussian-times-step fit.
+
+    Candidates: scan lines with the line's coarse support that the per-centre tests
+    refused, and accepted ones whose profile is noticeably asymmetric. A candidate whose
+    fit is accepted takes the fitted centre (and becomes valid); a refused fit leaves a
+    refused centre refused and an accepted Steger centre as it was.
+    """
+    none = np.full(lines.y.shape, np.inf)
+    asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
+    cand = coarse.support & ~saturated
+    cand &= ~valid | (asym > ASYMMETRY_REFIT if asym is not None else False)
+    # only inside the line (between its first and last accepted centre)
+    span = np.flatnonzero(valid)
+    if span.size < 2:
+        return lines.y, valid, none
+    cand[: span[0]] = False
+    cand[span[-1] + 1 :] = False
+    idx = np.flatnonzero(cand)
+    if idx.size == 0:
+        return lines.y, valid, none
+    ny = np.abs(np.nan_to_num(lines.ny[idx], nan=1.0)) if lines.ny is not None else 1.0
+    s_scan = (width / FWHM_PER_SIGMA) / np.maximum(ny, 0.5)
+    c0 = np.where(np.isfinite(lines.y[idx]), lines.y[idx], coarse.centre[idx])
+    half = profile_window(float(np.max(s_scan)))
+    rows = np.rint(c0)[:, None].astype(np.intp) + np.arange(-half, half + 1)[None, :]
+    inside = (rows[:, 0] >= 0) & (rows[:, -1] <= shape[0] - 1)
+    rows = np.clip(rows, 0, shape[0] - 1)
+    data = gather(rows, idx[:, None]).astype(np.float64)
+    yy = rows.astype(np.float64)
+    c, ok, sig, s_fit, b_fit = fit_step_profiles(data, yy, c0, s_scan, noise)
+    ok &= inside
+    if np.count_nonzero(ok) >= 5:
+        # Second pass: width and edge blur change slowly along the line (the blur across
+        # a Scheimpflug field), so the accepted fits' local medians hold them; with them
+        # fixed the centre is better determined and more fits pass.
+        s_ratio = _local_median(idx, ok, s_fit / s_scan)
+        b_loc = _local_median(idx, ok, b_fit)
+        c2, ok2, sig2, _, _ = fit_step_profiles(
+            data, yy, c0, s_scan * s_ratio, noise, blur=b_loc
+        )
+        ok2 &= inside
+        c = np.where(ok2, c2, c)
+        sig = np.where(ok2, sig2, sig)
+        ok = ok | ok2
+    y = lines.y.copy()
+    y[idx[ok]] = c[ok]
+    valid = valid.copy()
+    valid[idx[ok]] = True
+    sigma = none.copy()
+    sigma[idx[ok]] = sig[ok]
+    return y, valid, sigma
+
+
 def extract_stripe(
     image: Any,
     *,
@@ -178,6 +253,57 @@ def extract_stripe(
     **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
     mask or background of the wrong shape, or bad options.
     """
+    if background is None:
+        return _extract_one(
+            image, method=method, width_px=width_px, orientation=orientation,
+            band_px=band_px, min_strength=min_strength, saturation=saturation, mask=mask,
+            channel=channel, max_jump_px=max_jump_px, min_segment=min_segment,
+        )
+    kw = dict(
+        method=method, width_px=width_px, band_px=band_px, min_strength=min_strength,
+        saturation=saturation, mask=mask, max_jump_px=max_jump_px, min_segment=min_segment,
+    )
+    diff = _extract_one(
+        image, orientation=orientation, channel=channel, background=background,
+        normalise_background=normalise_background, **kw,
+    )
+    if method != "steger" or not diff.valid.any():
+        return diff
+    # The difference carries the laser-off frame's noise too (sqrt(2) x the RMS). Where
+    # the laser-on image alone gives an accepted centre (a symmetric profile: no
+    # albedo edge under the line) that agrees with the difference's, that one is the
+    # better estimate; the difference keeps the rest (the centres near checker edges).
+    on = _extract_one(image, orientation=diff.orientation, channel=diff.channel, **kw)
+    close = np.linalg.norm(np.nan_to_num(on.uv - diff.uv, nan=np.inf), axis=1) <= PICK_AGREE_PX
+    take = on.valid & diff.valid & close
+    pick = take[:, None]
+    return dataclasses.replace(
+        diff,
+        uv=np.where(pick, on.uv, diff.uv),
+        strength=np.where(take, on.strength, diff.strength),
+        width=np.where(take, on.width, diff.width),
+        saturated=np.where(take, on.saturated, diff.saturated),
+        confidence=np.where(take, on.confidence, diff.confidence),
+    )
+
+
+def _extract_one(
+    image: Any,
+    *,
+    method: str = "steger",
+    width_px: float | int | None = None,
+    orientation: str = "auto",
+    band_px: int | str | None = "auto",
+    min_strength: float | int | None = None,
+    saturation: float | int | None = None,
+    mask: Any = None,
+    channel: str = "auto",
+    background: Any = None,
+    normalise_background: bool = True,
+    max_jump_px: float | None = None,
+    min_segment: int | None = None,
+) -> StripeResult:
+    """`extract_stripe` on one signal (laser-on image, or its laser-off difference)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
     img, sat_img, channel = _signal(image, background, channel, width, normalise_background)
@@ -299,8 +425,13 @@ def extract_stripe(
         wv = np.nan_to_num(lines.width, nan=0.0)
         valid &= saturated | ((wv >= WIDTH_RATIO[0] * med) & (wv <= WIDTH_RATIO[1] * med))
 
+    y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
+    if method == "steger" and widths.size >= 8:
+        y_fit, valid, refit_sigma = _refit_steps(
+            gather, shape, lines, valid, saturated, coarse, float(np.median(widths)), noise
+        )
     x = np.arange(shape[1], dtype=np.float64)
-    y = np.where(valid, lines.y, np.nan)
+    y = np.where(valid, y_fit, np.nan)
     if roi is not None and valid.any():
         u_, v_ = (x, y) if orientation == "vertical-scan" else (y, x)
         iu = np.clip(np.rint(np.nan_to_num(u_)).astype(np.intp), 0, img.shape[1] - 1)
@@ -322,12 +453,18 @@ def extract_stripe(
         min_line=max(3 * min_pts, int(MIN_LINE_FRACTION * shape[1])),
     )
     saturated &= valid
-    y = np.where(valid, lines.y, np.nan)
+    y = np.where(valid, y_fit, np.nan)
     x = np.where(valid, x, np.nan)
     uv = np.stack([x, y], axis=1) if orientation == "vertical-scan" else np.stack([y, x], axis=1)
     asym = np.zeros(shape[1]) if lines.asym is None else np.nan_to_num(lines.asym, nan=1.0)
     confidence = np.clip(lines.strength / (4.0 * thr), 0.0, 1.0) * np.clip(
         1.0 - np.abs(asym) / ASYMMETRY_MAX, 0.0, 1.0
+    )
+    # centres of the step fit: at most 0.5 (a model fit, not a symmetric ridge), lower
+    # as the centre's standard error approaches the accepted limit
+    refit = np.isfinite(refit_sigma)
+    confidence = np.where(
+        refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
     )
     return StripeResult(
         uv=uv,
