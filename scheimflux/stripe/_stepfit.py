@@ -84,7 +84,32 @@ def _jacobian(y, p, data, r, free, h=1e-4):
     return J
 
 
-def fit_step_profiles(data, y, c0, s_line, noise, blur=None):
+def _lm(y, data, p, lo, hi, free, iters):
+    """Levenberg-Marquardt on the projected residual, vectorised over the rows; the
+    parameters stay within [lo, hi]. Returns the parameters and the costs."""
+    n = p.shape[0]
+    lam = np.full(n, 1e-2)
+    fixed = np.diag((~free).astype(np.float64))
+    r = _residual(y, p, data)
+    cost = np.einsum("nm,nm->n", r, r)
+    for _ in range(iters):
+        J = _jacobian(y, p, data, r, free)
+        JtJ = np.einsum("nmi,nmj->nij", J, J)
+        g = np.einsum("nmi,nm->ni", J, r)
+        diag = np.einsum("nii->ni", JtJ) + 1e-12
+        A = JtJ + fixed + (lam[:, None] * diag)[:, :, None] * np.eye(_NP)
+        q = np.clip(p - np.linalg.solve(A, g[..., None])[..., 0], lo, hi)
+        r_new = _residual(y, q, data)
+        cost_new = np.einsum("nm,nm->n", r_new, r_new)
+        better = cost_new < cost
+        p = np.where(better[:, None], q, p)
+        r = np.where(better[:, None], r_new, r)
+        cost = np.where(better, cost_new, cost)
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    return p, cost
+
+
+def fit_step_profiles(data, y, c0, s_line, noise, blur=None, init=None):
     """Fit the Gaussian-times-step profile to each row of `data`.
 
     **Arguments:**
@@ -97,13 +122,15 @@ def fit_step_profiles(data, y, c0, s_line, noise, blur=None):
     - `blur`: None (the edge blur `b` and the width `s` are fitted), or (n,) values of
       `b`; with it, `s` and `b` are held at `s_line` and `blur` (better determined
       centres when both are known from neighbouring fits).
+    - `init`: optional (n, 5) parameters `(e, c, s, b, k)` of an earlier fit to start
+      from (its `e`, `c`, `k`).
 
-    **Returns:** `(c, ok, sigma_c, s, b)`: fitted centres (n,), which fits are accepted,
-    the centres' standard errors, and the fitted widths and edge blurs.
+    **Returns:** `(c, ok, sigma_c, params)`: fitted centres (n,), which fits are
+    accepted, the centres' standard errors, and all parameters (n, 5) `(e, c, s, b, k)`.
     """
     n, m = data.shape
     if n == 0:
-        return np.zeros(0), np.zeros(0, bool), np.zeros(0), np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0, bool), np.zeros(0), np.zeros((0, _NP))
     data = data.astype(np.float64)
     s_line = np.broadcast_to(np.asarray(s_line, np.float64), (n,))
     # k (laser over ambient light) from the peak over the flanks
@@ -116,31 +143,22 @@ def fit_step_profiles(data, y, c0, s_line, noise, blur=None):
     if blur is not None:
         lo[:, 2] = hi[:, 2] = s_line
         lo[:, 3] = hi[:, 3] = b0
-    best_cost = np.full(n, np.inf)
-    best = np.zeros((n, _NP))
-    for start in (-1.2, 0.0, 1.2):
-        p = np.stack([c0 + start * s_line, c0, s_line, b0, k0], 1)
-        lam = np.full(n, 1e-2)
-        r = _residual(y, p, data)
-        cost = np.einsum("nm,nm->n", r, r)
-        for _ in range(_ITER):
-            J = _jacobian(y, p, data, r, free)
-            JtJ = np.einsum("nmi,nmj->nij", J, J)
-            g = np.einsum("nmi,nm->ni", J, r)
-            diag = np.einsum("nii->ni", JtJ) + 1e-12
-            JtJ = JtJ + np.diag((~free).astype(np.float64))
-            A = JtJ + (lam[:, None] * diag)[:, :, None] * np.eye(_NP)
-            q = np.clip(p - np.linalg.solve(A, g[..., None])[..., 0], lo, hi)
-            r_new = _residual(y, q, data)
-            cost_new = np.einsum("nm,nm->n", r_new, r_new)
-            better = cost_new < cost
-            p = np.where(better[:, None], q, p)
-            r = np.where(better[:, None], r_new, r)
-            cost = np.where(better, cost_new, cost)
-            lam = np.where(better, lam * 0.3, lam * 10.0)
-        take = cost < best_cost
-        best = np.where(take[:, None], p, best)
-        best_cost = np.where(take, cost, best_cost)
+    p0 = np.stack([c0, c0, s_line, b0, k0], 1)
+    if init is not None:
+        p0[:, 0], p0[:, 1], p0[:, 4] = init[:, 0], init[:, 1], init[:, 4]
+    best, best_cost = _lm(y, data, p0, lo, hi, free, _ITER)
+    # Other starting edge positions only where the first fit is poor (cost well above
+    # the noise's): the edge on the other side of the centre, or farther out.
+    poor = np.flatnonzero(best_cost > 1.5 * m * max(noise, 1e-9) ** 2)
+    for start in (-1.2, 1.2):
+        if poor.size == 0:
+            break
+        p = p0[poor].copy()
+        p[:, 0] = c0[poor] + start * s_line[poor]
+        q, cost = _lm(y[poor], data[poor], p, lo[poor], hi[poor], free, _ITER)
+        take = cost < best_cost[poor]
+        best[poor[take]] = q[take]
+        best_cost[poor[take]] = cost[take]
 
     e, c, s, b, k = best.T
     coef, r = _project(*_design(y, best), data)
@@ -163,7 +181,7 @@ def fit_step_profiles(data, y, c0, s_line, noise, blur=None):
         & ((s > lo[:, 2] * 1.01) & (s < hi[:, 2] * 0.99) | (blur is not None))
         & (np.abs(c - c0) < 2.95)
     )
-    return c, ok, np.where(ok, sigma_c, np.inf), s, b
+    return c, ok, np.where(ok, sigma_c, np.inf), best
 
 
 def profile_window(s_line: float) -> int:
