@@ -66,10 +66,19 @@ def _line_points(rx, ry, rxx, rxy, ryy):
     half_diff = 0.5 * (rxx - ryy)
     root = np.sqrt(half_diff * half_diff + rxy * rxy)
     lam = 0.5 * (rxx + ryy) - root
-    # Eigenvector of the smaller eigenvalue: perpendicular to that of the larger one.
-    theta = 0.5 * np.arctan2(2.0 * rxy, rxx - ryy)
-    nx = -np.sin(theta)
-    ny = np.cos(theta)
+    # Eigenvector of the smaller eigenvalue, without trigonometry: (rxy, λ - rxx) and
+    # (λ - ryy, rxy) both solve (H - λ) n = 0; the longer one is the well-conditioned
+    # one. Normalised, sign chosen with ny >= 0 ((0, 1) where H is isotropic).
+    ax, ay = rxy, lam - rxx
+    bx, by = lam - ryy, rxy
+    use_a = ax * ax + ay * ay >= bx * bx + by * by
+    vx = np.where(use_a, ax, bx)
+    vy = np.where(use_a, ay, by)
+    norm = np.sqrt(vx * vx + vy * vy)
+    flip = np.where(vy < 0, -1.0, 1.0).astype(norm.dtype)
+    inv = np.where(norm > 0, flip / np.where(norm > 0, norm, 1.0), 0.0)
+    nx = vx * inv
+    ny = np.where(norm > 0, vy * inv, 1.0)
     g = nx * rx + ny * ry
     safe = np.where(lam < 0, lam, -1.0)
     t = -g / safe
