@@ -147,10 +147,14 @@ def _local_median(x: np.ndarray, ok: np.ndarray, values: np.ndarray, reach: floa
 def _refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     """Centres with an albedo edge under the line, from the Gaussian-times-step fit.
 
-    Candidates: scan lines with the line's coarse support that the per-centre tests
-    refused, and accepted ones whose profile is noticeably asymmetric. A candidate whose
-    fit is accepted takes the fitted centre (and becomes valid); a refused fit leaves a
-    refused centre refused and an accepted Steger centre as it was.
+    Candidates: scan lines with the line's coarse support, between its first and last
+    accepted centre, that the per-centre tests refused, and accepted ones whose profile
+    is noticeably asymmetric. A candidate whose fit is accepted takes the fitted centre
+    (and becomes valid); a refused fit leaves a refused centre refused and an accepted
+    Steger centre as it was.
+
+    **Returns:** `(y, valid, sigma)`: centres, validity and the fitted centres' standard
+    errors (inf where not fitted).
     """
     none = np.full(lines.y.shape, np.inf)
     asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
@@ -225,8 +229,10 @@ def extract_stripe(
     centroid) in a band around the track; (4) per-centre ridge tests: a negative second
     derivative across the line of at least the noise threshold, the first derivative's
     zero inside the band, a plausible width and a symmetric profile (a brightness step
-    under the line, such as a checker edge, pulls the centre and is refused); (5)
-    linking into segments (largest jump `max_jump_px` per scan line), hysteresis on the
+    under the line, such as a checker edge, pulls the centre); (5) the centres refused
+    there (and the noticeably asymmetric ones) measured again by a least-squares fit of
+    albedo step x Gaussian line to the raw profile, kept where that fit is well
+    determined (`_stepfit.py`); (6) linking into segments (largest jump `max_jump_px` per scan line), hysteresis on the
     strength and removal of short segments.
 
     **Arguments:**
@@ -251,7 +257,9 @@ def extract_stripe(
       `"green-minus-others"` or `"blue-minus-others"` (`X - (Y + Z) / 2`). Grey images
       take `"auto"` or `"grey"`.
     - `background`: optional laser-off image of the same pose (same shape); the centres
-      are found in the difference image.
+      are found in the difference image (laser-off frame denoised by an edge-keeping
+      filter), except where the laser-on image alone gives an accepted centre that
+      agrees with it within 0.5 px (that one carries no laser-off noise).
     - `normalise_background`: with a `background`, divide the difference by the
       laser-off level (albedo-free: the line keeps its brightness and its centre across
       black and white squares); False: the plain difference.
