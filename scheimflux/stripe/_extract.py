@@ -232,8 +232,8 @@ def extract_stripe(
     under the line, such as a checker edge, pulls the centre); (5) the centres refused
     there (and the noticeably asymmetric ones) measured again by a least-squares fit of
     albedo step x Gaussian line to the raw profile, kept where that fit is well
-    determined (`_stepfit.py`); (6) linking into segments (largest jump `max_jump_px` per scan line), hysteresis on the
-    strength and removal of short segments.
+    determined (`_stepfit.py`); (6) linking into segments (largest jump `max_jump_px`
+    per scan line), hysteresis on the strength and removal of short segments.
 
     **Arguments:**
     - `image`: grey (H, W) or colour (H, W, 3|4) image, colour in **BGR** order as

@@ -146,6 +146,11 @@ def _smooth_normal(nx: np.ndarray, ny: np.ndarray, found: np.ndarray):
     flip = np.where(ny < 0, -1.0, 1.0)
     phi = np.arctan2(nx * flip, ny * flip)  # in (-pi/2, pi/2]: the sign of n is free
     half = _NORMAL_WINDOW // 2
+    if found.all():  # the common case: a partial sort (median) of full windows
+        padded = np.pad(phi, half, mode="edge")
+        win = np.lib.stride_tricks.sliding_window_view(padded, _NORMAL_WINDOW)
+        phi = np.partition(win, half, axis=1)[:, half]
+        return np.sin(phi) * flip, np.cos(phi) * flip
     padded = np.pad(np.where(found, phi, np.inf), half, constant_values=np.inf)
     win = np.sort(np.lib.stride_tricks.sliding_window_view(padded, _NORMAL_WINDOW), axis=1)
     count = np.count_nonzero(np.isfinite(win), axis=1)
