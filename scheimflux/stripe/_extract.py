@@ -16,13 +16,12 @@ from ._centroid import centroid_band
 from ._channel import pick_channel
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, as_image, channel_image, estimate_noise
-from ._kernels import FWHM_PER_SIGMA
 from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._steger import ScanLines, steger_band, steger_full
-from ._stepfit import MAX_SIGMA_C, fit_step_profiles, profile_window
+from ._stepfit import MAX_SIGMA_C, refit_steps
 
 _METHODS = ("steger", "centroid")
 _ORIENTATIONS = ("auto", "vertical-scan", "horizontal-scan")
@@ -36,9 +35,6 @@ ASYMMETRY_MAX = 0.12
 # With a laser-off frame, a laser-on-only centre replaces the difference's when both
 # are accepted and agree to this (px).
 PICK_AGREE_PX = 0.5
-# Accepted centres whose profile asymmetry exceeds this are re-measured by the
-# Gaussian-times-step fit (kept as they are when that fit is refused).
-ASYMMETRY_REFIT = 0.05
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
@@ -130,76 +126,6 @@ def _albedo_normalised(diff: np.ndarray, off: np.ndarray) -> np.ndarray:
     if not floor > 0:
         return diff
     return diff * (max(typical, floor) / np.maximum(smooth, floor))
-
-
-def _local_median(x: np.ndarray, ok: np.ndarray, values: np.ndarray, reach: float = 150.0):
-    """Median of `values[ok]` over the entries within `reach` scan lines of each `x`
-    (sorted), the global median where a window holds fewer than 5."""
-    xs, vs = x[ok], values[ok]
-    out = np.full(x.size, float(np.median(vs)))
-    lo = np.searchsorted(xs, x - reach)
-    hi = np.searchsorted(xs, x + reach)
-    for i in np.flatnonzero(hi - lo >= 5):
-        out[i] = np.median(vs[lo[i] : hi[i]])
-    return out
-
-
-def _refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
-    """Centres with an albedo edge under the line, from the Gaussian-times-step fit.
-
-    Candidates: scan lines with the line's coarse support, between its first and last
-    accepted centre, that the per-centre tests refused, and accepted ones whose profile
-    is noticeably asymmetric. A candidate whose fit is accepted takes the fitted centre
-    (and becomes valid); a refused fit leaves a refused centre refused and an accepted
-    Steger centre as it was.
-
-    **Returns:** `(y, valid, sigma)`: centres, validity and the fitted centres' standard
-    errors (inf where not fitted).
-    """
-    none = np.full(lines.y.shape, np.inf)
-    asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
-    cand = coarse.support & ~saturated
-    cand &= ~valid | (asym > ASYMMETRY_REFIT if asym is not None else False)
-    # only inside the line (between its first and last accepted centre)
-    span = np.flatnonzero(valid)
-    if span.size < 2:
-        return lines.y, valid, none
-    cand[: span[0]] = False
-    cand[span[-1] + 1 :] = False
-    idx = np.flatnonzero(cand)
-    if idx.size == 0:
-        return lines.y, valid, none
-    ny = np.abs(np.nan_to_num(lines.ny[idx], nan=1.0)) if lines.ny is not None else 1.0
-    s_scan = (width / FWHM_PER_SIGMA) / np.maximum(ny, 0.5)
-    c0 = np.where(np.isfinite(lines.y[idx]), lines.y[idx], coarse.centre[idx])
-    half = profile_window(float(np.max(s_scan)))
-    rows = np.rint(c0)[:, None].astype(np.intp) + np.arange(-half, half + 1)[None, :]
-    inside = (rows[:, 0] >= 0) & (rows[:, -1] <= shape[0] - 1)
-    rows = np.clip(rows, 0, shape[0] - 1)
-    data = gather(rows, idx[:, None]).astype(np.float64)
-    yy = rows.astype(np.float64)
-    c, ok, sig, params = fit_step_profiles(data, yy, c0, s_scan, noise)
-    ok &= inside
-    if np.count_nonzero(ok) >= 5:
-        # Second pass: width and edge blur change slowly along the line (the blur across
-        # a Scheimpflug field), so the accepted fits' local medians hold them; with them
-        # fixed the centre is better determined and more fits pass.
-        s_ratio = _local_median(idx, ok, params[:, 2] / s_scan)
-        b_loc = _local_median(idx, ok, params[:, 3])
-        c2, ok2, sig2, _ = fit_step_profiles(
-            data, yy, c0, s_scan * s_ratio, noise, blur=b_loc, init=params
-        )
-        ok2 &= inside
-        c = np.where(ok2, c2, c)
-        sig = np.where(ok2, sig2, sig)
-        ok = ok | ok2
-    y = lines.y.copy()
-    y[idx[ok]] = c[ok]
-    valid = valid.copy()
-    valid[idx[ok]] = True
-    sigma = none.copy()
-    sigma[idx[ok]] = sig[ok]
-    return y, valid, sigma
 
 
 def extract_stripe(
@@ -447,7 +373,7 @@ def _extract_one(
 
     y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
     if method == "steger" and widths.size >= 8:
-        y_fit, valid, refit_sigma = _refit_steps(
+        y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, float(np.median(widths)), noise
         )
     x = np.arange(shape[1], dtype=np.float64)

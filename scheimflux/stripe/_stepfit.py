@@ -29,6 +29,8 @@ import math
 import numpy as np
 from scipy.special import ndtr
 
+from ._kernels import FWHM_PER_SIGMA
+
 # Accepted standard error of a fitted centre (px): the covariance of the fit with the
 # residual's own noise level. Laser-on profiles of the dimmed board reach 0.03-0.06 with
 # width and blur held; 0.1 keeps the line's RMS within 0.05 px (a minority of centres).
@@ -37,6 +39,9 @@ MAX_SIGMA_C = 0.1
 # 99.9 % point of sqrt(chi²_13 / 13) is 1.6; shot noise on the bright side adds to it.
 MAX_RESIDUAL = 2.0
 _ITER = 14
+# Accepted centres whose profile asymmetry exceeds this are re-measured by the
+# Gaussian-times-step fit (kept as they are when that fit is refused).
+ASYMMETRY_REFIT = 0.05
 
 
 _NP = 5  # nonlinear parameters: e, c, s, b, k
@@ -188,3 +193,73 @@ def fit_step_profiles(data, y, c0, s_line, noise, blur=None, init=None):
 def profile_window(s_line: float) -> int:
     """Half-length (rows) of the profile window: the line and a flank on each side."""
     return int(math.ceil(3.0 * s_line)) + 3
+
+
+def _local_median(x: np.ndarray, ok: np.ndarray, values: np.ndarray, reach: float = 150.0):
+    """Median of `values[ok]` over the entries within `reach` scan lines of each `x`
+    (sorted), the global median where a window holds fewer than 5."""
+    xs, vs = x[ok], values[ok]
+    out = np.full(x.size, float(np.median(vs)))
+    lo = np.searchsorted(xs, x - reach)
+    hi = np.searchsorted(xs, x + reach)
+    for i in np.flatnonzero(hi - lo >= 5):
+        out[i] = np.median(vs[lo[i] : hi[i]])
+    return out
+
+
+def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
+    """Centres with an albedo edge under the line, from the Gaussian-times-step fit.
+
+    Candidates: scan lines with the line's coarse support, between its first and last
+    accepted centre, that the per-centre tests refused, and accepted ones whose profile
+    is noticeably asymmetric. A candidate whose fit is accepted takes the fitted centre
+    (and becomes valid); a refused fit leaves a refused centre refused and an accepted
+    Steger centre as it was.
+
+    **Returns:** `(y, valid, sigma)`: centres, validity and the fitted centres' standard
+    errors (inf where not fitted).
+    """
+    none = np.full(lines.y.shape, np.inf)
+    asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
+    cand = coarse.support & ~saturated
+    cand &= ~valid | (asym > ASYMMETRY_REFIT if asym is not None else False)
+    # only inside the line (between its first and last accepted centre)
+    span = np.flatnonzero(valid)
+    if span.size < 2:
+        return lines.y, valid, none
+    cand[: span[0]] = False
+    cand[span[-1] + 1 :] = False
+    idx = np.flatnonzero(cand)
+    if idx.size == 0:
+        return lines.y, valid, none
+    ny = np.abs(np.nan_to_num(lines.ny[idx], nan=1.0)) if lines.ny is not None else 1.0
+    s_scan = (width / FWHM_PER_SIGMA) / np.maximum(ny, 0.5)
+    c0 = np.where(np.isfinite(lines.y[idx]), lines.y[idx], coarse.centre[idx])
+    half = profile_window(float(np.max(s_scan)))
+    rows = np.rint(c0)[:, None].astype(np.intp) + np.arange(-half, half + 1)[None, :]
+    inside = (rows[:, 0] >= 0) & (rows[:, -1] <= shape[0] - 1)
+    rows = np.clip(rows, 0, shape[0] - 1)
+    data = gather(rows, idx[:, None]).astype(np.float64)
+    yy = rows.astype(np.float64)
+    c, ok, sig, params = fit_step_profiles(data, yy, c0, s_scan, noise)
+    ok &= inside
+    if np.count_nonzero(ok) >= 5:
+        # Second pass: width and edge blur change slowly along the line (the blur across
+        # a Scheimpflug field), so the accepted fits' local medians hold them; with them
+        # fixed the centre is better determined and more fits pass.
+        s_ratio = _local_median(idx, ok, params[:, 2] / s_scan)
+        b_loc = _local_median(idx, ok, params[:, 3])
+        c2, ok2, sig2, _ = fit_step_profiles(
+            data, yy, c0, s_scan * s_ratio, noise, blur=b_loc, init=params
+        )
+        ok2 &= inside
+        c = np.where(ok2, c2, c)
+        sig = np.where(ok2, sig2, sig)
+        ok = ok | ok2
+    y = lines.y.copy()
+    y[idx[ok]] = c[ok]
+    valid = valid.copy()
+    valid[idx[ok]] = True
+    sigma = none.copy()
+    sigma[idx[ok]] = sig[ok]
+    return y, valid, sigma
