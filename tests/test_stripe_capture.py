@@ -44,18 +44,20 @@ def test_board_captures_no_false_points(name):
     on, off, truth = capture(**SCENES[name])
     expect = "horizontal-scan" if name == "checker-vertical" else "vertical-scan"
     # Without a laser-off frame: never a centre off the line. Centres where a checker
-    # edge lies under the line are refused (their profile is asymmetric), so coverage
-    # on this small board (squares ~ 50 px, many crossings) is only 50-85 %.
+    # edge lies under the line come from the Gaussian-times-step fit where it is well
+    # determined and are refused elsewhere: on this small board (squares ~ 50 px, many
+    # crossings) 81-94 % of the line is covered (was 50-85 % with refusal alone).
     res = extract_stripe(on)
     s = score(res, truth)
     assert res.orientation == expect and not res.ambiguous
     assert s.false_rate <= 0.005 and s.max_error < 3.0
-    assert s.coverage >= 0.45
+    assert s.coverage >= 0.75
     # Accepted centres are unbiased to the noise: the RMS is noise-limited (about
     # 0.5 sigma_n / peak for Steger: 1.3 grey levels of noise over a 38-level peak on
-    # the dark squares gives ~0.02 px; the albedo steps that pass the symmetry test
-    # add up to ~0.1 px on a few centres), hence the 0.1 px bound.
-    assert s.rms <= 0.1 and abs(s.bias) <= 0.03
+    # the dark squares gives ~0.02 px; step-fit centres, at most ~20 % of them, are
+    # accepted up to a standard error of 0.1 px: sqrt(0.8 0.05² + 0.2 0.1²) = 0.063),
+    # hence the 0.08 px bound.
+    assert s.rms <= 0.08 and abs(s.bias) <= 0.03
     # With the laser-off frame the albedo is divided out: almost the whole line.
     s_bg = score(extract_stripe(on, background=off), truth)
     assert s_bg.false_rate <= 0.005
@@ -115,7 +117,11 @@ def test_mask_ignores_the_laser_elsewhere():
     inner = region_mask(truth.region_px, SHAPE, margin_px=0.0)
     both = res.valid & poly.valid
     assert both.sum() >= 0.9 * poly.valid.sum()
-    np.testing.assert_allclose(res.uv[both], poly.uv[both], atol=1e-9)
+    # Steger's centres are identical; centres from the Gaussian-times-step fit (a checker
+    # edge under the line) hold width and edge blur at local medians over the accepted
+    # fits, which depend on the region's extent by a few thousandths of a pixel.
+    np.testing.assert_allclose(res.uv[both], poly.uv[both], atol=0.01)
+    assert np.mean(np.all(np.abs(res.uv[both] - poly.uv[both]) < 1e-9, axis=1)) >= 0.8
     assert inner.sum() < mask.sum()
 
 
@@ -193,3 +199,62 @@ def test_link_segments_split_and_drop():
         y, valid, np.full(y.size, 1.0), max_jump_px=2.0, max_gap=2, min_points=8, high=5.0
     )
     assert not weak.any()
+
+
+def _blurred_step_line(c, e, *, s0=2.0, blur=0.8, a=(0.25, 0.85), ambient=0.3, laser=0.6):
+    """albedo x (ambient + laser Gaussian), blurred by numerical convolution on a fine
+    grid (independent of the closed form in `_stepfit`), sampled at rows 40..60."""
+    fine = np.arange(0.0, 100.0, 0.01)
+    albedo = np.where(fine < e, a[0], a[1])
+    E = 255.0 * albedo * (ambient + laser * np.exp(-0.5 * ((fine - c) / s0) ** 2))
+    t = np.arange(-600, 601) * 0.01
+    k = np.exp(-0.5 * (t / blur) ** 2)
+    Eb = np.convolve(E, k / k.sum(), mode="same")
+    rows = np.arange(40.0, 61.0)
+    return rows, np.interp(rows, fine, Eb)
+
+
+def test_step_model_closed_form_matches_numerical_blur():
+    # I(y) = a(1 + kG) + b(Phi_b + k G Phi_in): the blurred product of a step albedo and
+    # a Gaussian line, against a numerical convolution of the same product.
+    from scheimflux.stripe._stepfit import _design, _project
+
+    s0, blur = 2.0, 0.8
+    for c, e in ((50.2, 49.1), (50.0, 52.3), (49.7, 49.7)):
+        rows, prof = _blurred_step_line(c, e, s0=s0, blur=blur)
+        s = np.hypot(s0, blur)
+        k = 0.6 / 0.3 * s0 / s  # laser over ambient, times the blur's loss of peak
+        p = np.array([[e, c, s, blur, k]])
+        coef, r = _project(*_design(rows[None], p), prof[None])
+        # exact up to the fine grid: its 0.01 px steps move the edge by up to 0.01 px,
+        # i.e. (step height x edge slope ~ 0.5 / px) x 0.01 px ~ 0.2 % of the signal
+        assert np.abs(r).max() < 2e-3 * prof.max()
+        np.testing.assert_allclose(coef[0], [255 * 0.3 * 0.25, 255 * 0.3 * 0.6], rtol=3e-3)
+
+
+def test_step_fit_recovers_centres_under_an_albedo_edge():
+    from scheimflux.stripe._stepfit import fit_step_profiles
+
+    rng = np.random.default_rng(1)
+    n, noise = 120, 1.2
+    c_true = 50.0 + rng.uniform(-0.5, 0.5, n)
+    e_true = c_true + rng.uniform(-4.0, 4.0, n)
+    rows = np.tile(np.arange(40.0, 61.0), (n, 1))
+    data = np.stack([_blurred_step_line(c, e)[1] for c, e in zip(c_true, e_true)])
+    data = data + rng.normal(0.0, noise, data.shape)
+    c0 = c_true + rng.uniform(-1.0, 1.0, n)  # Steger's pulled centre: within ~1 px
+    s_line = np.hypot(2.0, 0.8)
+    c, ok, sigma, _ = fit_step_profiles(data, rows, c0, s_line, noise)
+    err = (c - c_true)[ok]
+    # most profiles are fitted; the standard error is calibrated (the RMS error over
+    # the RMS standard error is 1 within the sampling spread of ~100 fits and 3 sigma)
+    assert ok.mean() >= 0.6
+    ratio = np.sqrt(np.mean(err**2)) / np.sqrt(np.mean(sigma[ok] ** 2))
+    assert 0.6 <= ratio <= 1.5, ratio
+    assert abs(err.mean()) <= 4 * np.sqrt(np.mean(sigma[ok] ** 2) / ok.sum()) + 0.005
+    assert np.abs(err).max() <= 0.3
+    # Plain Steger-like symmetric estimators are pulled by the edge by ~1 px; a pure
+    # step without a line has no centre: every such fit is refused.
+    flat = np.stack([_blurred_step_line(c, e, laser=0.0)[1] for c, e in zip(c_true, e_true)])
+    flat = flat + rng.normal(0.0, noise, flat.shape)
+    assert not fit_step_profiles(flat, rows, c0, s_line, noise)[1].any()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import math
 import os
 from collections.abc import Iterable
@@ -20,6 +21,7 @@ from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._steger import ScanLines, steger_band, steger_full
+from ._stepfit import MAX_SIGMA_C, refit_steps
 
 _METHODS = ("steger", "centroid")
 _ORIENTATIONS = ("auto", "vertical-scan", "horizontal-scan")
@@ -30,6 +32,9 @@ _DEFAULT_WIDTH = 5.0
 # than this fraction of its height has a brightness step under it (an albedo edge, the
 # rim of a glint), which pulls the centre: rejected. A symmetric line gives 0 plus noise.
 ASYMMETRY_MAX = 0.12
+# With a laser-off frame, a laser-on-only centre replaces the difference's when both
+# are accepted and agree to this (px).
+PICK_AGREE_PX = 0.5
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
@@ -90,10 +95,22 @@ def _signal(image, background, channel, width, normalise):
     sig, sat = channel_image(img, channel)
     if background is not None:
         base, level = channel_image(off, channel)
-        sig = sig.astype(np.float32) - base.astype(np.float32)
+        base = _denoised(base.astype(np.float32))
+        sig = sig.astype(np.float32) - base
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
             sig = _albedo_normalised(sig, level.astype(np.float32))
     return sig, sat, channel
+
+
+def _denoised(off: np.ndarray) -> np.ndarray:
+    """The laser-off frame with its noise smoothed away but its edges kept (a bilateral
+    filter with a grey-level scale of four noise stds): subtracted as it is, the
+    laser-off frame adds its own noise to the difference (sqrt(2) x the centre RMS),
+    while a plain blur would smear the albedo edges it is there to remove."""
+    noise = estimate_noise(off)
+    if not noise > 0:
+        return off
+    return cv2.bilateralFilter(off, 5, 4.0 * noise, 1.5)
 
 
 def _albedo_normalised(diff: np.ndarray, off: np.ndarray) -> np.ndarray:
@@ -138,9 +155,11 @@ def extract_stripe(
     centroid) in a band around the track; (4) per-centre ridge tests: a negative second
     derivative across the line of at least the noise threshold, the first derivative's
     zero inside the band, a plausible width and a symmetric profile (a brightness step
-    under the line, such as a checker edge, pulls the centre and is refused); (5)
-    linking into segments (largest jump `max_jump_px` per scan line), hysteresis on the
-    strength and removal of short segments.
+    under the line, such as a checker edge, pulls the centre); (5) the centres refused
+    there (and the noticeably asymmetric ones) measured again by a least-squares fit of
+    albedo step x Gaussian line to the raw profile, kept where that fit is well
+    determined (`_stepfit.py`); (6) linking into segments (largest jump `max_jump_px`
+    per scan line), hysteresis on the strength and removal of short segments.
 
     **Arguments:**
     - `image`: grey (H, W) or colour (H, W, 3|4) image, colour in **BGR** order as
@@ -164,7 +183,9 @@ def extract_stripe(
       `"green-minus-others"` or `"blue-minus-others"` (`X - (Y + Z) / 2`). Grey images
       take `"auto"` or `"grey"`.
     - `background`: optional laser-off image of the same pose (same shape); the centres
-      are found in the difference image.
+      are found in the difference image (laser-off frame denoised by an edge-keeping
+      filter), except where the laser-on image alone gives an accepted centre that
+      agrees with it within 0.5 px (that one carries no laser-off noise).
     - `normalise_background`: with a `background`, divide the difference by the
       laser-off level (albedo-free: the line keeps its brightness and its centre across
       black and white squares); False: the plain difference.
@@ -178,6 +199,57 @@ def extract_stripe(
     **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
     mask or background of the wrong shape, or bad options.
     """
+    if background is None:
+        return _extract_one(
+            image, method=method, width_px=width_px, orientation=orientation,
+            band_px=band_px, min_strength=min_strength, saturation=saturation, mask=mask,
+            channel=channel, max_jump_px=max_jump_px, min_segment=min_segment,
+        )
+    kw = dict(
+        method=method, width_px=width_px, band_px=band_px, min_strength=min_strength,
+        saturation=saturation, mask=mask, max_jump_px=max_jump_px, min_segment=min_segment,
+    )
+    diff = _extract_one(
+        image, orientation=orientation, channel=channel, background=background,
+        normalise_background=normalise_background, **kw,
+    )
+    if method != "steger" or not diff.valid.any():
+        return diff
+    # The difference carries the laser-off frame's noise too (sqrt(2) x the RMS). Where
+    # the laser-on image alone gives an accepted centre (a symmetric profile: no
+    # albedo edge under the line) that agrees with the difference's, that one is the
+    # better estimate; the difference keeps the rest (the centres near checker edges).
+    on = _extract_one(image, orientation=diff.orientation, channel=diff.channel, **kw)
+    close = np.linalg.norm(np.nan_to_num(on.uv - diff.uv, nan=np.inf), axis=1) <= PICK_AGREE_PX
+    take = on.valid & diff.valid & close
+    pick = take[:, None]
+    return dataclasses.replace(
+        diff,
+        uv=np.where(pick, on.uv, diff.uv),
+        strength=np.where(take, on.strength, diff.strength),
+        width=np.where(take, on.width, diff.width),
+        saturated=np.where(take, on.saturated, diff.saturated),
+        confidence=np.where(take, on.confidence, diff.confidence),
+    )
+
+
+def _extract_one(
+    image: Any,
+    *,
+    method: str = "steger",
+    width_px: float | int | None = None,
+    orientation: str = "auto",
+    band_px: int | str | None = "auto",
+    min_strength: float | int | None = None,
+    saturation: float | int | None = None,
+    mask: Any = None,
+    channel: str = "auto",
+    background: Any = None,
+    normalise_background: bool = True,
+    max_jump_px: float | None = None,
+    min_segment: int | None = None,
+) -> StripeResult:
+    """`extract_stripe` on one signal (laser-on image, or its laser-off difference)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
     img, sat_img, channel = _signal(image, background, channel, width, normalise_background)
@@ -299,8 +371,13 @@ def extract_stripe(
         wv = np.nan_to_num(lines.width, nan=0.0)
         valid &= saturated | ((wv >= WIDTH_RATIO[0] * med) & (wv <= WIDTH_RATIO[1] * med))
 
+    y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
+    if method == "steger" and widths.size >= 8:
+        y_fit, valid, refit_sigma = refit_steps(
+            gather, shape, lines, valid, saturated, coarse, float(np.median(widths)), noise
+        )
     x = np.arange(shape[1], dtype=np.float64)
-    y = np.where(valid, lines.y, np.nan)
+    y = np.where(valid, y_fit, np.nan)
     if roi is not None and valid.any():
         u_, v_ = (x, y) if orientation == "vertical-scan" else (y, x)
         iu = np.clip(np.rint(np.nan_to_num(u_)).astype(np.intp), 0, img.shape[1] - 1)
@@ -322,12 +399,18 @@ def extract_stripe(
         min_line=max(3 * min_pts, int(MIN_LINE_FRACTION * shape[1])),
     )
     saturated &= valid
-    y = np.where(valid, lines.y, np.nan)
+    y = np.where(valid, y_fit, np.nan)
     x = np.where(valid, x, np.nan)
     uv = np.stack([x, y], axis=1) if orientation == "vertical-scan" else np.stack([y, x], axis=1)
     asym = np.zeros(shape[1]) if lines.asym is None else np.nan_to_num(lines.asym, nan=1.0)
     confidence = np.clip(lines.strength / (4.0 * thr), 0.0, 1.0) * np.clip(
         1.0 - np.abs(asym) / ASYMMETRY_MAX, 0.0, 1.0
+    )
+    # centres of the step fit: at most 0.5 (a model fit, not a symmetric ridge), lower
+    # as the centre's standard error approaches the accepted limit
+    refit = np.isfinite(refit_sigma)
+    confidence = np.where(
+        refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
     )
     return StripeResult(
         uv=uv,

@@ -66,10 +66,19 @@ def _line_points(rx, ry, rxx, rxy, ryy):
     half_diff = 0.5 * (rxx - ryy)
     root = np.sqrt(half_diff * half_diff + rxy * rxy)
     lam = 0.5 * (rxx + ryy) - root
-    # Eigenvector of the smaller eigenvalue: perpendicular to that of the larger one.
-    theta = 0.5 * np.arctan2(2.0 * rxy, rxx - ryy)
-    nx = -np.sin(theta)
-    ny = np.cos(theta)
+    # Eigenvector of the smaller eigenvalue, without trigonometry: (rxy, λ - rxx) and
+    # (λ - ryy, rxy) both solve (H - λ) n = 0; the longer one is the well-conditioned
+    # one. Normalised, sign chosen with ny >= 0 ((0, 1) where H is isotropic).
+    ax, ay = rxy, lam - rxx
+    bx, by = lam - ryy, rxy
+    use_a = ax * ax + ay * ay >= bx * bx + by * by
+    vx = np.where(use_a, ax, bx)
+    vy = np.where(use_a, ay, by)
+    norm = np.sqrt(vx * vx + vy * vy)
+    flip = np.where(vy < 0, -1.0, 1.0).astype(norm.dtype)
+    inv = np.where(norm > 0, flip / np.where(norm > 0, norm, 1.0), 0.0)
+    nx = vx * inv
+    ny = np.where(norm > 0, vy * inv, 1.0)
     g = nx * rx + ny * ry
     safe = np.where(lam < 0, lam, -1.0)
     t = -g / safe
@@ -117,6 +126,39 @@ def _select(win: list[np.ndarray], lo: int, hi: int):
     )
 
 
+# Scan lines over which the line normal is median-filtered (odd).
+_NORMAL_WINDOW = 15
+
+
+def _smooth_normal(nx: np.ndarray, ny: np.ndarray, found: np.ndarray):
+    """The line normal per scan line, median-filtered over `_NORMAL_WINDOW` scan lines.
+
+    Where the line's brightness changes along itself (an albedo edge crossing the line:
+    black and white squares) the Hessian's normal tilts towards the edge, and the
+    derivative along it picks up the along-line gradient `a'(s) f(d) t`, which shifts the
+    zero by up to ~1 px. The line's direction changes slowly along it, so a median over
+    neighbouring scan lines gives the geometric normal, along which the derivative of
+    `a(s) f(d)` (separable under the isotropic Gaussian) is `a(s) f'(d)`: zero exactly
+    at the centre.
+    """
+    if nx.size < _NORMAL_WINDOW or not found.any():
+        return nx, ny
+    flip = np.where(ny < 0, -1.0, 1.0)
+    phi = np.arctan2(nx * flip, ny * flip)  # in (-pi/2, pi/2]: the sign of n is free
+    half = _NORMAL_WINDOW // 2
+    if found.all():  # the common case: a partial sort (median) of full windows
+        padded = np.pad(phi, half, mode="edge")
+        win = np.lib.stride_tricks.sliding_window_view(padded, _NORMAL_WINDOW)
+        phi = np.partition(win, half, axis=1)[:, half]
+        return np.sin(phi) * flip, np.cos(phi) * flip
+    padded = np.pad(np.where(found, phi, np.inf), half, constant_values=np.inf)
+    win = np.sort(np.lib.stride_tricks.sliding_window_view(padded, _NORMAL_WINDOW), axis=1)
+    count = np.count_nonzero(np.isfinite(win), axis=1)
+    mid = np.take_along_axis(win, np.maximum((count - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    phi = np.where(count >= 3, mid, phi)
+    return np.sin(phi) * flip, np.cos(phi) * flip
+
+
 def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: int, sigma: float):
     """Sub-pixel centre, strength and width per column from the window (K, W) arrays.
 
@@ -133,6 +175,7 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
     grad_x = np.gradient(bg) if bg.size > 1 else np.zeros_like(bg)
     k_rows, n = rx.shape
     cols = np.arange(n)
+    nxk, nyk = _smooth_normal(nxk, nyk, found)
 
     def along(i):  # n·∇r (background ramp removed) and its derivative along y, per column
         return (
