@@ -266,7 +266,8 @@ class PointsWriter:
                 i = next(i for i, f in enumerate(frames) if np.isinf(f).any())
                 raise ValueError(f"frame {self.n_frames + i} points contain infinite values")
             pts = a if keep.all() else a[keep]
-            self._fh.write(memoryview(np.ascontiguousarray(pts)).cast("B"))
+            if len(pts):  # a memoryview of zero rows cannot be cast to bytes
+                self._fh.write(memoryview(np.ascontiguousarray(pts)).cast("B"))
             self.n_points += len(pts)
             self.n_frames += len(frames)
             return
