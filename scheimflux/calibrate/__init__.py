@@ -65,6 +65,10 @@ from ._solve import (
     parameter_labels as parameter_labels,
     refine as refine,
 )
+from ._stage_target import (
+    axis_from_poses as axis_from_poses,
+    stage_from_axis as stage_from_axis,
+)
 from ._uncertainty import (
     fit_diagnostics as fit_diagnostics,
     length_uncertainty as length_uncertainty,
