@@ -68,6 +68,10 @@ from ._stage import (
     calibrate_stage as calibrate_stage,
     initial_stage as initial_stage,
 )
+from ._stage_target import (
+    axis_from_poses as axis_from_poses,
+    stage_from_axis as stage_from_axis,
+)
 from ._summary import (
     calibration_summary as calibration_summary,
     format_summary as format_summary,

@@ -57,6 +57,11 @@ from ._scenes import (
     stripe_on_board as stripe_on_board,
     trace_points as trace_points,
 )
+from ._stage_target import (
+    StageTargetScan as StageTargetScan,
+    lying_target_pose as lying_target_pose,
+    stage_target_scan as stage_target_scan,
+)
 from ._trace import (
     Surfaces as Surfaces,
     Trace as Trace,
