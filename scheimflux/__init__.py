@@ -1,16 +1,18 @@
 """scheimflux: thick-lens Scheimpflug camera calibration and laser-line 3-D measurement.
 
-Importing scheimflux switches JAX to 64-bit floats (metrology needs them); set the
-environment variable `SCHEIMFLUX_NO_X64=1` before importing to keep JAX's default.
+Importing scheimflux switches JAX to 64-bit floats (metrology needs them; set the
+environment variable `SCHEIMFLUX_NO_X64=1` before importing to keep JAX's default) and
+switches JAX's persistent compilation cache on (`scheimflux._cache`: the folder is
+`~/.cache/scheimflux/jax`, `SCHEIMFLUX_CACHE_DIR` overrides it, `SCHEIMFLUX_CACHE_DIR=off`
+switches it off).
 """
 
 import importlib.metadata
-import os
 
-import jax
+from . import _cache
 
-if os.environ.get("SCHEIMFLUX_NO_X64", "") in ("", "0"):
-    jax.config.update("jax_enable_x64", True)
+_cache.enable_x64()
+_cache.enable_compilation_cache()
 
 from . import (
     camera as camera,

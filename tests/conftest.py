@@ -1,5 +1,16 @@
+import atexit
+import os
+import shutil
+import tempfile
+
 import jax
 import pytest
+
+# A fresh, empty compilation cache for this test session (and the CLI subprocesses it
+# starts), so no test depends on what earlier runs left in the user's cache.
+_CACHE = tempfile.mkdtemp(prefix="scheimflux-test-jax-cache-")
+os.environ["SCHEIMFLUX_CACHE_DIR"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, True)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")

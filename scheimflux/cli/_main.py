@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
+from .._cache import enable_compilation_cache
 from ._common import CLIError
 
 # Subcommand modules, in the order `--help` lists them.
@@ -30,21 +30,6 @@ _SUBCOMMANDS = (
     "_report",
     "_export",
 )
-
-
-def _enable_compilation_cache() -> None:
-    import jax
-
-    cache = os.environ.get(
-        "SCHEIMFLUX_CACHE_DIR",
-        os.path.join(os.path.expanduser("~"), ".cache", "scheimflux", "jax"),
-    )
-    try:
-        os.makedirs(cache, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-    except (OSError, AttributeError):  # read-only home or old JAX: run uncached
-        pass
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    _enable_compilation_cache()
+    enable_compilation_cache()  # already on from `import scheimflux`; idempotent
     try:
         return int(args.func(args) or 0)
     except (
