@@ -295,9 +295,12 @@ def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
     with its laser-off image and a view without the target goes through `detect`, and
     `calibrate` gets exactly what detect found (the solver is replaced by a recorder:
     the solve itself is checked end to end by the slow tests below)."""
+    import importlib
     import shutil
 
-    import scheimflux.calibrate._calibrate as calibrate_module
+    # the package namespace the CLI imports `calibrate` from (`sf.calibrate` is the
+    # function, so `import scheimflux.calibrate as m` would not give the package)
+    calibrate_module = importlib.import_module("scheimflux.calibrate")
 
     board = CharucoBoard(8, 6, 0.2, 0.14)
     rig, truth, corners = _scene(cam, board, rots=(183.0, 188.0, 178.0))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
 import math
 import os
 from collections.abc import Iterable
@@ -32,9 +31,6 @@ _DEFAULT_WIDTH = 5.0
 # than this fraction of its height has a brightness step under it (an albedo edge, the
 # rim of a glint), which pulls the centre: rejected. A symmetric line gives 0 plus noise.
 ASYMMETRY_MAX = 0.12
-# With a laser-off frame, a laser-on-only centre replaces the difference's when both
-# are accepted and agree to this (px).
-PICK_AGREE_PX = 0.5
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
@@ -184,8 +180,8 @@ def extract_stripe(
       take `"auto"` or `"grey"`.
     - `background`: optional laser-off image of the same pose (same shape); the centres
       are found in the difference image (laser-off frame denoised by an edge-keeping
-      filter), except where the laser-on image alone gives an accepted centre that
-      agrees with it within 0.5 px (that one carries no laser-off noise).
+      filter). (Taking the laser-on image's own centre where it agrees was tried: on
+      grey single images of a ChArUco board those centres are biased by up to 0.2 px.)
     - `normalise_background`: with a `background`, divide the difference by the
       laser-off level (albedo-free: the line keeps its brightness and its centre across
       black and white squares); False: the plain difference.
@@ -205,32 +201,12 @@ def extract_stripe(
             band_px=band_px, min_strength=min_strength, saturation=saturation, mask=mask,
             channel=channel, max_jump_px=max_jump_px, min_segment=min_segment,
         )
-    kw = dict(
-        method=method, width_px=width_px, band_px=band_px, min_strength=min_strength,
-        saturation=saturation, mask=mask, max_jump_px=max_jump_px, min_segment=min_segment,
-    )
-    diff = _extract_one(
-        image, orientation=orientation, channel=channel, background=background,
-        normalise_background=normalise_background, **kw,
-    )
-    if method != "steger" or not diff.valid.any():
-        return diff
-    # The difference carries the laser-off frame's noise too (sqrt(2) x the RMS). Where
-    # the laser-on image alone gives an accepted centre (a symmetric profile: no
-    # albedo edge under the line) that agrees with the difference's, that one is the
-    # better estimate; the difference keeps the rest (the centres near checker edges).
-    on = _extract_one(image, orientation=diff.orientation, channel=diff.channel, **kw)
-    close = np.linalg.norm(np.nan_to_num(on.uv - diff.uv, nan=np.inf), axis=1) <= PICK_AGREE_PX
-    take = on.valid & diff.valid & close
-    pick = take[:, None]
-    return dataclasses.replace(
-        diff,
-        uv=np.where(pick, on.uv, diff.uv),
-        strength=np.where(take, on.strength, diff.strength),
-        width=np.where(take, on.width, diff.width),
-        saturated=np.where(take, on.saturated, diff.saturated),
-        confidence=np.where(take, on.confidence, diff.confidence),
-    )
+    return _extract_one(
+        image, method=method, width_px=width_px, orientation=orientation, band_px=band_px,
+        min_strength=min_strength, saturation=saturation, mask=mask, channel=channel,
+        max_jump_px=max_jump_px, min_segment=min_segment, background=background,
+        normalise_background=normalise_background,
+    )  # fmt: skip
 
 
 def _extract_one(
