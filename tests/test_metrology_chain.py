@@ -51,6 +51,7 @@ def _independent_value(params, prof):
     return float(fit_shape(Steps(), X, prof.labels).values[0])
 
 
+@pytest.mark.slow  # with the next test ~40 s of the default suite on a quiet 2-core machine
 def test_gradient_wrt_calibration_parameters_matches_finite_differences(chain):
     c = chain
     uv = jnp.asarray(c["prof"].px_true)
@@ -74,6 +75,7 @@ def test_gradient_wrt_calibration_parameters_matches_finite_differences(chain):
         assert abs(G[i] - fd) <= 1e-5 * abs(fd) + 1e-9, (label, G[i], fd)
 
 
+@pytest.mark.slow  # the chain fixture's calibration and a Monte Carlo of the chain
 def test_stripe_noise_uncertainty_against_monte_carlo(chain):
     c = chain
     uv0 = jnp.asarray(c["prof"].px_true)
