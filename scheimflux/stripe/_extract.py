@@ -195,12 +195,6 @@ def extract_stripe(
     **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
     mask or background of the wrong shape, or bad options.
     """
-    if background is None:
-        return _extract_one(
-            image, method=method, width_px=width_px, orientation=orientation,
-            band_px=band_px, min_strength=min_strength, saturation=saturation, mask=mask,
-            channel=channel, max_jump_px=max_jump_px, min_segment=min_segment,
-        )
     return _extract_one(
         image, method=method, width_px=width_px, orientation=orientation, band_px=band_px,
         min_strength=min_strength, saturation=saturation, mask=mask, channel=channel,
