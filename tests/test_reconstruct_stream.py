@@ -212,3 +212,48 @@ def test_sharded_over_four_host_devices_equals_one_device(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "OK 10" in r.stdout
+
+
+def test_streamed_parquet_equals_in_memory_points(tmp_path, system):
+    pytest.importorskip("pyarrow")
+    from scheimflux.io import read_points_parquet
+
+    cam, plane, _ = system
+    frames = _frames()
+    pts, _ = reconstruct_frames(cam, plane, frames, sensor_size=SENSOR)
+    with open_points_writer(tmp_path / "str.parquet") as w:
+        for p, _ in iter_reconstruct(cam, plane, frames, sensor_size=SENSOR, chunk_frames=3):
+            w.add(p)
+    frame, pixel, xyz = read_points_parquet(tmp_path / "str.parquet")
+    # every valid point of the in-memory batch, once, at its (frame, pixel), bit for bit
+    want = [(i, k) for i, p in enumerate(pts) for k in np.flatnonzero(np.isfinite(p).all(1))]
+    assert list(zip(frame.tolist(), pixel.tolist())) == want
+    np.testing.assert_array_equal(xyz, np.stack([pts[i][k] for i, k in want]))
+    # write_points (one call) gives the same table
+    write_points(tmp_path / "mem.parquet", pts)
+    for a, b in zip(read_points_parquet(tmp_path / "mem.parquet"), (frame, pixel, xyz)):
+        np.testing.assert_array_equal(a, b)
+    # a failure midway leaves neither the file nor a temporary
+    def failing():
+        yield from frames[:5]
+        raise OSError("camera unplugged")
+
+    with pytest.raises(OSError, match="unplugged"):
+        with open_points_writer(tmp_path / "f.parquet") as w:
+            for p, _ in iter_reconstruct(cam, plane, failing(), chunk_frames=2):
+                w.add(p)
+    assert sorted(os.listdir(tmp_path)) == ["mem.parquet", "str.parquet"]
+
+
+def test_parquet_without_pyarrow_is_refused_up_front(tmp_path, monkeypatch, capsys):
+    # pyarrow made unimportable: a one-line message naming the file and the extra, before
+    # any work, and nothing written
+    monkeypatch.setitem(sys.modules, "pyarrow", None)
+    monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
+    cal = _cal(tmp_path)
+    write_stripes(tmp_path / "s.json", [np.array([[800.0, 600.0]])])
+    argv = ["reconstruct", cal, str(tmp_path / "s.json"), "--out", str(tmp_path / "p.parquet")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "p.parquet" in err and "scheimflux[parquet]" in err
+    assert not (tmp_path / "p.parquet").exists()
