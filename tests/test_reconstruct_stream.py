@@ -257,3 +257,41 @@ def test_parquet_without_pyarrow_is_refused_up_front(tmp_path, monkeypatch, caps
     err = capsys.readouterr().err
     assert "p.parquet" in err and "scheimflux[parquet]" in err
     assert not (tmp_path / "p.parquet").exists()
+
+
+def test_cli_reconstruct_from_a_folder_of_frames(tmp_path, capsys):
+    # images -> stripes -> points in one pass == `extract` then `reconstruct`, byte for
+    # byte; an unreadable image and a blank one stay in place as empty frames
+    import cv2
+
+    from scheimflux.simulate._render_stripe import render_stripe
+
+    cal = _cal(tmp_path)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(5):
+        img, _ = render_stripe((240, 320), lambda u, i=i: 100.0 + 0.1 * u + 9 * i, seed=i)
+        cv2.imwrite(str(folder / f"f{i}.png"), img)
+    (folder / "f5.png").write_bytes(b"not an image")
+    cv2.imwrite(str(folder / "f6.png"), np.zeros((240, 320), np.uint8))
+    cv2.imwrite(str(folder / "f10.png"), img)  # natural order: after f6
+    assert main(["extract", str(folder), "--out", str(tmp_path / "s.json")]) == 0
+    stripes = str(tmp_path / "s.json")
+    assert main(["reconstruct", cal, stripes, "--out", str(tmp_path / "a.ply")]) == 0
+    capsys.readouterr()
+    argv = ["reconstruct", cal, str(folder), "--chunk-frames", "3", "--workers", "2", "--out"]
+    assert main([*argv, str(tmp_path / "b.ply")]) == 0
+    text = capsys.readouterr()
+    assert (tmp_path / "b.ply").read_bytes() == (tmp_path / "a.ply").read_bytes()
+    assert "reconstructed 8 frames" in text.out and "1 unusable, 1 without a line" in text.out
+    assert "f5.png" in text.err and "f6.png" in text.err
+    # .npy rows: the larger image side; frame i is the i-th image
+    assert main([*argv, str(tmp_path / "b.npy")]) == 0
+    a = np.load(tmp_path / "b.npy")
+    assert a.shape == (8, 320, 3)
+    assert np.isnan(a[5]).all() and np.isnan(a[6]).all() and np.isfinite(a[7, :300]).all()
+    # a folder without images: one line, exit 1, nothing written
+    (tmp_path / "none").mkdir()
+    argv = ["reconstruct", cal, str(tmp_path / "none"), "--out", str(tmp_path / "c.ply")]
+    assert main(argv) == 1
+    assert "no image files" in capsys.readouterr().err and not (tmp_path / "c.ply").exists()

@@ -186,3 +186,24 @@ def iter_folder_stripes(
                 del loaded
     finally:
         cv2.setNumThreads(previous)
+
+
+def folder_stripe_frames(
+    frames: Sequence[tuple[str, str | None]],
+    *,
+    report=None,
+    workers: int | None = None,
+    batch: int | None = None,
+    **kwargs: Any,
+) -> Iterator[np.ndarray]:
+    """The valid centres `(N_i, 2)` of each frame (`(0, 2)` for an unusable frame or one
+    without a line), in file order: the input of `reconstruct.iter_reconstruct` straight
+    from images.
+
+    **Arguments:** as `iter_folder_stripes`; `report`, if given, is called with each
+    `FrameStripes` (to tell the user about skipped or empty frames).
+    """
+    for frame in iter_folder_stripes(frames, workers=workers, batch=batch, **kwargs):
+        if report is not None:
+            report(frame)
+        yield frame.uv
