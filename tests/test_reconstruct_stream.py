@@ -295,3 +295,28 @@ def test_cli_reconstruct_from_a_folder_of_frames(tmp_path, capsys):
     argv = ["reconstruct", cal, str(tmp_path / "none"), "--out", str(tmp_path / "c.ply")]
     assert main(argv) == 1
     assert "no image files" in capsys.readouterr().err and not (tmp_path / "c.ply").exists()
+
+
+def test_import_stays_light():
+    # `import scheimflux` (issue 14: import time) loads neither SciPy nor matplotlib nor
+    # the renderer/capture/metrology subpackages; they load on first use, and
+    # `sf.calibrate` is still the function
+    script = textwrap.dedent(
+        """
+        import sys
+        import scheimflux as sf
+        heavy = ["scipy", "matplotlib", "scheimflux.simulate", "scheimflux.capture",
+                 "scheimflux.metrology", "scheimflux.export"]
+        print(sorted(m for m in heavy if m in sys.modules))
+        fit = sf.fit_plane
+        print(callable(sf.calibrate), fit.__module__, "scheimflux.metrology" in sys.modules)
+        """
+    )
+    env = {**os.environ, "SCHEIMFLUX_CACHE_DIR": "off"}
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True
+    ).stdout.split("\n")
+    assert out[0] == "[]"
+    calibrate_is_function, module, loaded = out[1].split()
+    assert calibrate_is_function == "True" and loaded == "True"
+    assert module.startswith("scheimflux.metrology")
