@@ -16,13 +16,9 @@ _cache.enable_compilation_cache()
 
 from . import (
     camera as camera,
-    capture as capture,
-    export as export,
     geometry as geometry,
     io as io,
-    metrology as metrology,
     reconstruct as reconstruct,
-    simulate as simulate,
     stripe as stripe,
     targets as targets,
 )
@@ -60,11 +56,6 @@ from .io import (
     write_observations as write_observations,
     write_points as write_points,
 )
-from .metrology import (
-    fit_cylinder as fit_cylinder,
-    fit_plane as fit_plane,
-    step_height as step_height,
-)
 from .reconstruct import (
     Reconstruction as Reconstruction,
     Status as Status,
@@ -79,3 +70,22 @@ from .stripe import (
 from .targets import Checkerboard as Checkerboard, detect_checkerboard as detect_checkerboard
 
 __version__ = importlib.metadata.version("scheimflux")
+
+# Imported on first use (import time, issue 14): these subpackages pull in SciPy, the
+# renderer and optimistix's solvers, which `import scheimflux` does not need.
+_LAZY_MODULES = ("capture", "export", "metrology", "simulate")
+_LAZY_NAMES = {"fit_cylinder": "metrology", "fit_plane": "metrology", "step_height": "metrology"}
+
+
+def __getattr__(name: str):
+    import importlib
+
+    if name in _LAZY_MODULES:
+        return importlib.import_module(f".{name}", __name__)
+    if name in _LAZY_NAMES:
+        return getattr(importlib.import_module(f".{_LAZY_NAMES[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY_MODULES) | set(_LAZY_NAMES))

@@ -165,12 +165,15 @@ def test_reconstruct_as_many_frames_as_points_in_the_measurement_frame(tmp_path,
 
 
 def test_reconstruct_stripes_file_is_a_folder(tmp_path, capsys):
+    # a folder is read as a folder of frame images (issue 14); one without images is
+    # refused in one line naming it, and nothing is written
     cal = _cal_file(tmp_path / "cal.json")
     (tmp_path / "s.json").mkdir()
     code, _, err = _run(
         capsys, "reconstruct", cal, str(tmp_path / "s.json"), "--out", str(tmp_path / "p.ply")
     )
-    assert code == 1 and "is a folder" in _one_line(err)
+    assert code == 1 and "no image files" in _one_line(err) and "s.json" in err
+    assert not (tmp_path / "p.ply").exists()
 
 
 # ------------------------------------------------------------------------- simulate CLI

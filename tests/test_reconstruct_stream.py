@@ -212,3 +212,111 @@ def test_sharded_over_four_host_devices_equals_one_device(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "OK 10" in r.stdout
+
+
+def test_streamed_parquet_equals_in_memory_points(tmp_path, system):
+    pytest.importorskip("pyarrow")
+    from scheimflux.io import read_points_parquet
+
+    cam, plane, _ = system
+    frames = _frames()
+    pts, _ = reconstruct_frames(cam, plane, frames, sensor_size=SENSOR)
+    with open_points_writer(tmp_path / "str.parquet") as w:
+        for p, _ in iter_reconstruct(cam, plane, frames, sensor_size=SENSOR, chunk_frames=3):
+            w.add(p)
+    frame, pixel, xyz = read_points_parquet(tmp_path / "str.parquet")
+    # every valid point of the in-memory batch, once, at its (frame, pixel), bit for bit
+    want = [(i, k) for i, p in enumerate(pts) for k in np.flatnonzero(np.isfinite(p).all(1))]
+    assert list(zip(frame.tolist(), pixel.tolist())) == want
+    np.testing.assert_array_equal(xyz, np.stack([pts[i][k] for i, k in want]))
+    # write_points (one call) gives the same table
+    write_points(tmp_path / "mem.parquet", pts)
+    for a, b in zip(read_points_parquet(tmp_path / "mem.parquet"), (frame, pixel, xyz)):
+        np.testing.assert_array_equal(a, b)
+    # a failure midway leaves neither the file nor a temporary
+    def failing():
+        yield from frames[:5]
+        raise OSError("camera unplugged")
+
+    with pytest.raises(OSError, match="unplugged"):
+        with open_points_writer(tmp_path / "f.parquet") as w:
+            for p, _ in iter_reconstruct(cam, plane, failing(), chunk_frames=2):
+                w.add(p)
+    assert sorted(os.listdir(tmp_path)) == ["mem.parquet", "str.parquet"]
+
+
+def test_parquet_without_pyarrow_is_refused_up_front(tmp_path, monkeypatch, capsys):
+    # pyarrow made unimportable: a one-line message naming the file and the extra, before
+    # any work, and nothing written
+    monkeypatch.setitem(sys.modules, "pyarrow", None)
+    monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
+    cal = _cal(tmp_path)
+    write_stripes(tmp_path / "s.json", [np.array([[800.0, 600.0]])])
+    argv = ["reconstruct", cal, str(tmp_path / "s.json"), "--out", str(tmp_path / "p.parquet")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "p.parquet" in err and "scheimflux[parquet]" in err
+    assert not (tmp_path / "p.parquet").exists()
+
+
+def test_cli_reconstruct_from_a_folder_of_frames(tmp_path, capsys):
+    # images -> stripes -> points in one pass == `extract` then `reconstruct`, byte for
+    # byte; an unreadable image and a blank one stay in place as empty frames
+    import cv2
+
+    from scheimflux.simulate._render_stripe import render_stripe
+
+    cal = _cal(tmp_path)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(5):
+        img, _ = render_stripe((240, 320), lambda u, i=i: 100.0 + 0.1 * u + 9 * i, seed=i)
+        cv2.imwrite(str(folder / f"f{i}.png"), img)
+    (folder / "f5.png").write_bytes(b"not an image")
+    cv2.imwrite(str(folder / "f6.png"), np.zeros((240, 320), np.uint8))
+    cv2.imwrite(str(folder / "f10.png"), img)  # natural order: after f6
+    assert main(["extract", str(folder), "--out", str(tmp_path / "s.json")]) == 0
+    stripes = str(tmp_path / "s.json")
+    assert main(["reconstruct", cal, stripes, "--out", str(tmp_path / "a.ply")]) == 0
+    capsys.readouterr()
+    argv = ["reconstruct", cal, str(folder), "--chunk-frames", "3", "--workers", "2", "--out"]
+    assert main([*argv, str(tmp_path / "b.ply")]) == 0
+    text = capsys.readouterr()
+    assert (tmp_path / "b.ply").read_bytes() == (tmp_path / "a.ply").read_bytes()
+    assert "reconstructed 8 frames" in text.out and "1 unusable, 1 without a line" in text.out
+    assert "f5.png" in text.err and "f6.png" in text.err
+    # .npy rows: the larger image side; frame i is the i-th image
+    assert main([*argv, str(tmp_path / "b.npy")]) == 0
+    a = np.load(tmp_path / "b.npy")
+    assert a.shape == (8, 320, 3)
+    assert np.isnan(a[5]).all() and np.isnan(a[6]).all() and np.isfinite(a[7, :300]).all()
+    # a folder without images: one line, exit 1, nothing written
+    (tmp_path / "none").mkdir()
+    argv = ["reconstruct", cal, str(tmp_path / "none"), "--out", str(tmp_path / "c.ply")]
+    assert main(argv) == 1
+    assert "no image files" in capsys.readouterr().err and not (tmp_path / "c.ply").exists()
+
+
+def test_import_stays_light():
+    # `import scheimflux` (issue 14: import time) loads neither SciPy nor matplotlib nor
+    # the renderer/capture/metrology subpackages; they load on first use, and
+    # `sf.calibrate` is still the function
+    script = textwrap.dedent(
+        """
+        import sys
+        import scheimflux as sf
+        heavy = ["scipy", "matplotlib", "scheimflux.simulate", "scheimflux.capture",
+                 "scheimflux.metrology", "scheimflux.export"]
+        print(sorted(m for m in heavy if m in sys.modules))
+        fit = sf.fit_plane
+        print(callable(sf.calibrate), fit.__module__, "scheimflux.metrology" in sys.modules)
+        """
+    )
+    env = {**os.environ, "SCHEIMFLUX_CACHE_DIR": "off"}
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True
+    ).stdout.split("\n")
+    assert out[0] == "[]"
+    calibrate_is_function, module, loaded = out[1].split()
+    assert calibrate_is_function == "True" and loaded == "True"
+    assert module.startswith("scheimflux.metrology")

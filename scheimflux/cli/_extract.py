@@ -19,11 +19,14 @@ import os
 import numpy as np
 
 from ..io._stripes import write_stripes
-from ..stripe._extract import extract_stripe
+from ..stripe._folder import (
+    IMAGE_SUFFIXES as IMAGE_SUFFIXES,
+    frame_files,
+    iter_folder_stripes,
+    read_image as read_image,
+)
 from ..stripe._image import CHANNELS
-from ._common import CLIError, check_output, list_images, progress, refuse_to_clobber, warn
-
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
+from ._common import CLIError, check_output, progress, refuse_to_clobber, warn
 
 
 def register(subparsers) -> None:
@@ -62,90 +65,45 @@ def register(subparsers) -> None:
         help="NAME<SUFFIX>.EXT is the laser-off image of NAME.EXT (e.g. _off); "
         "the difference is used",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="threads extracting frames (default: the number of CPUs)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.set_defaults(func=run)
 
 
-def read_image(path: str) -> np.ndarray | None:
-    """The image as stored (grey (H, W) or BGR (H, W, 3); alpha dropped), or None when it
-    cannot be read."""
-    import cv2
-
-    try:
-        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    if image is None or image.size == 0 or image.ndim not in (2, 3):
-        return None
-    if image.ndim == 3:
-        if image.shape[2] == 1:
-            image = image[:, :, 0]
-        elif image.shape[2] >= 3:
-            image = np.ascontiguousarray(image[:, :, :3])
-        else:
-            return None
-    return image
-
-
-def _pair(paths: list[str], suffix: str | None) -> list[tuple[str, str | None]]:
-    """(laser-on, laser-off or None) per frame; laser-off files are not frames."""
-    if not suffix:
-        return [(p, None) for p in paths]
-    stems = {os.path.splitext(p)[0]: p for p in paths}
-    off = {p for p in paths if os.path.splitext(p)[0].endswith(suffix)}
-    out = []
-    for p in paths:
-        if p in off:
-            continue
-        out.append((p, stems.get(os.path.splitext(p)[0] + suffix)))
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
-    paths = list_images(args.frames_dir, IMAGE_SUFFIXES)
-    if not paths:
-        raise CLIError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in {args.frames_dir}")
-    pairs = _pair(paths, args.laser_off)
-    if not pairs:
-        raise CLIError(f"only laser-off images (*{args.laser_off}.*) in {args.frames_dir}")
+    try:
+        pairs = frame_files(args.frames_dir, args.laser_off)
+    except ValueError as err:
+        raise CLIError(str(err)) from None
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
     refuse_to_clobber(args.out, overwrite=args.overwrite)
     check_output(args.out, overwrite=True)  # its folder takes a file: before the long part
     frames: list = []
     skipped: list[str] = []
     empty: list[str] = []
-    shape = None
     n_points = 0
-    for path, off_path in progress(pairs, "extract", "frame"):
-        name = os.path.basename(path)
-        image = read_image(path)
-        problem = None
-        if image is None:
-            problem = "unreadable image"
-        elif shape is not None and image.shape[:2] != shape:
-            problem = f"size {image.shape[1]}x{image.shape[0]} differs from {shape[1]}x{shape[0]}"
-        background = None
-        if problem is None and off_path is not None:
-            background = read_image(off_path)
-            if background is None:
-                problem = f"unreadable laser-off image {os.path.basename(off_path)}"
-        if problem is None:
-            try:
-                result = extract_stripe(
-                    image,
-                    method=args.method,
-                    width_px=args.width_px,
-                    orientation=args.orientation,
-                    channel=args.channel,
-                    background=background,
-                )
-            except ValueError as err:
-                problem = str(err)
-        if problem is not None:
+    options = dict(
+        method=args.method,
+        width_px=args.width_px,
+        orientation=args.orientation,
+        channel=args.channel,
+    )
+    found = iter_folder_stripes(pairs, workers=args.workers, **options)
+    for frame in progress(found, "extract", "frame"):
+        name = os.path.basename(frame.path)
+        result = frame.result
+        if result is None:
             skipped.append(name)
-            warn("extract", f"skipped {name}: {problem}")
+            warn("extract", f"skipped {name}: {frame.problem}")
             frames.append(np.zeros((0, 2)))
             continue
-        shape = image.shape[:2] if shape is None else shape
         if not result.valid.any():
             empty.append(name)
             warn("extract", f"{name}: no laser line found (blank, line-free or saturated frame)")

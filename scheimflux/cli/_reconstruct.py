@@ -14,6 +14,18 @@ out, like pixels whose ray misses the plane. The command fails (exit 1, no file 
 when STRIPES has no frames, no pixel gives a valid point, or STRIPES turns out to be
 malformed or cut short partway.
 
+  .parquet  one row per valid point: frame, pixel (index within the frame), x, y, z
+         (needs pyarrow: pip install "scheimflux[parquet]").
+
+STRIPES may also be a folder of frame images (png, tif, tiff, bmp, jpg, jpeg; one frame
+per image in natural name order, as for `scheimflux extract`): the stripes are extracted
+(--method, --width-px, --orientation, --channel, --laser-off, --workers as for
+`extract`) and reconstructed in one pass, a few images in memory at a time. Unreadable
+images, images of another size than the first one and images without a line are
+reported by name and kept as empty frames, so frame i is still the i-th image (which
+matters for --frame measurement). For .npy output the row width is the larger image
+side (at most one centre per scan line).
+
 The scan streams: STRIPES is read one frame at a time, frames are reconstructed
 --chunk-frames at a time and written as they come to a temporary file beside POINTS,
 which is moved into place at the end; memory does not grow with the scan's length.
@@ -36,9 +48,16 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("calibration", metavar="CAL.json", help="calibration file")
-    p.add_argument("stripes", metavar="STRIPES.json", help="stripe centres per frame")
     p.add_argument(
-        "--out", required=True, metavar="POINTS", help="output: POINTS.json, .ply or .npy"
+        "stripes",
+        metavar="STRIPES",
+        help="STRIPES.json (stripe centres per frame) or a folder of frame images",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="POINTS",
+        help="output: POINTS.json, .ply, .npy or .parquet",
     )
     p.add_argument(
         "--frame",
@@ -55,8 +74,57 @@ def register(subparsers) -> None:
         help="frames reconstructed per batch: memory stays bounded by N frames whatever the "
         "length of the scan (default: %(default)s)",
     )
+    from ..stripe._image import CHANNELS
+
+    g = p.add_argument_group("stripe extraction (when STRIPES is a folder of images)")
+    g.add_argument("--method", choices=("steger", "centroid"), default="steger")
+    g.add_argument("--width-px", type=float, default=None, metavar="W",
+                   help="expected line width (FWHM, px); measured if left out")
+    g.add_argument("--orientation", choices=("auto", "vertical-scan", "horizontal-scan"),
+                   default="auto", help="scan columns or rows; auto: per image")
+    g.add_argument("--channel", choices=CHANNELS, default="auto",
+                   help="colour channel or combination holding the laser")
+    g.add_argument("--laser-off", metavar="SUFFIX", default=None,
+                   help="NAME<SUFFIX>.EXT is the laser-off image of NAME.EXT")
+    g.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="threads extracting frames (default: the number of CPUs)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=run)
+
+
+def _folder_source(args):
+    """Stripe frames straight from the images of a folder, with the npy row width and
+    a tally of the frames that gave nothing."""
+    import os
+
+    from ..stripe._folder import folder_stripe_frames, frame_files, read_image
+    from ._common import warn
+
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        pairs = frame_files(args.stripes, args.laser_off)
+    except ValueError as err:
+        raise CLIError(str(err)) from None
+    first = next((im for im in (read_image(p) for p, _ in pairs) if im is not None), None)
+    if first is None:
+        raise CLIError(f"none of the {len(pairs)} images in {args.stripes} could be read")
+    tally = {"skipped": 0, "empty": 0}
+
+    def report(frame):
+        name = os.path.basename(frame.path)
+        if frame.result is None:
+            tally["skipped"] += 1
+            warn("reconstruct", f"{name}: kept as an empty frame ({frame.problem})")
+        elif not frame.result.valid.any():
+            tally["empty"] += 1
+            warn("reconstruct", f"{name}: no laser line found (kept as an empty frame)")
+
+    frames = folder_stripe_frames(
+        pairs, report=report, workers=args.workers, method=args.method,
+        width_px=args.width_px, orientation=args.orientation, channel=args.channel,
+    )  # fmt: skip
+    return frames, max(first.shape[:2]), tally
 
 
 def reconstruct_frames(
@@ -96,6 +164,11 @@ def run(args) -> int:
             f"--frame measurement needs a calibrated rotary stage; {args.calibration} has "
             "none (calibrate with a gauge scan in the observations, or use --frame camera)"
         )
+    import os
+
+    frames = width = tally = None
+    if os.path.isdir(args.stripes):
+        frames, width, tally = _folder_source(args)
     try:
         s = reconstruct_scan(
             loaded,
@@ -105,11 +178,18 @@ def run(args) -> int:
             chunk_frames=args.chunk_frames,
             overwrite=args.overwrite,
             progress=lambda it: progress(it, "reconstruct", f"x{args.chunk_frames} frames"),
+            frames=frames,
+            width=width,
         )
     except ScanError as err:
         raise CLIError(str(err)) from None
 
     print(f"reconstructed {s.frames} frames, {s.pixels} stripe pixels ({s.model}, {s.frame} frame)")
+    if tally is not None:
+        print(
+            f"  stripes extracted from the images of {args.stripes}: {tally['skipped']} "
+            f"unusable, {tally['empty']} without a line (kept as empty frames)"
+        )
     print(f"  valid points  : {s.valid}")
     print(f"  invalid points: {s.pixels - s.valid}")
     for c, reason in REASONS.items():

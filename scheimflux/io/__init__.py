@@ -25,6 +25,7 @@ from ._opencv_yaml import (
 from ._pointcloud import (
     open_points_writer as open_points_writer,
     read_ply as read_ply,
+    read_points_parquet as read_points_parquet,
     write_ply as write_ply,
     write_points as write_points,
 )

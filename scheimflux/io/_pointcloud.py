@@ -9,6 +9,10 @@
 - JSON (from `write_points`): `{"format": "scheimflux.points/1", "frame": "camera" |
   "measurement", "unit": "mm", "frames": [[[x, y, z], ...], ...]}`, invalid points left
   out.
+- Parquet (needs the optional `pyarrow`: `pip install "scheimflux[parquet]"`): one row
+  per valid point, columns `frame` (int32, frame index), `pixel` (int32, index of the
+  stripe pixel within its frame), `x`, `y`, `z` (float64, mm); the schema metadata holds
+  `format`, `frame` and `unit`. Written one row group per `PointsWriter.add`.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from ._files import atomic_output, check_writable, write_atomic
 
 POINTS_FORMAT = "scheimflux.points/1"
 FRAMES = ("camera", "measurement")
-POINT_EXTENSIONS = (".json", ".ply", ".npy")
+POINT_EXTENSIONS = (".json", ".ply", ".npy", ".parquet")
 
 _PLY_TYPES = {
     "char": "i1",
@@ -200,7 +204,47 @@ def points_extension(path: str | os.PathLike) -> str:
             f"{os.fspath(path)}: unknown point-cloud format {ext or '(no extension)'!r}; "
             f"use one of {', '.join(POINT_EXTENSIONS)}"
         )
+    if ext == ".parquet":
+        _pyarrow(path)
     return ext
+
+
+def _pyarrow(path):
+    """`pyarrow.parquet`, or a one-line `ValueError` naming the file when it is missing."""
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise ValueError(
+            f"{os.fspath(path)}: writing Parquet needs pyarrow, which is not installed "
+            '(pip install "scheimflux[parquet]"); or use .ply or .npy'
+        ) from None
+    return pq
+
+
+def _parquet_schema(frame: str):
+    import pyarrow as pa
+
+    meta = {"format": POINTS_FORMAT, "frame": frame, "unit": "mm"}
+    fields = [("frame", pa.int32()), ("pixel", pa.int32())]
+    fields += [(c, pa.float64()) for c in "xyz"]
+    return pa.schema(fields, metadata=meta)
+
+
+def read_points_parquet(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A Parquet point file as `(frame, pixel, xyz)`: int arrays `(N,)` and float64
+    `(N, 3)`. Raises `ValueError` for a file that is not a scheimflux point file."""
+    pq = _pyarrow(path)
+    try:
+        table = pq.read_table(os.fspath(path))
+    except Exception as err:  # pyarrow raises its own types for a damaged file
+        raise ValueError(f"{os.fspath(path)}: not a readable Parquet file ({err})") from None
+    meta = table.schema.metadata or {}
+    if meta.get(b"format") != POINTS_FORMAT.encode() or table.column_names != [
+        "frame", "pixel", "x", "y", "z"
+    ]:  # fmt: skip
+        raise ValueError(f"{os.fspath(path)}: not a {POINTS_FORMAT} Parquet file")
+    cols = [table.column(c).to_numpy() for c in table.column_names]
+    return cols[0], cols[1], np.stack(cols[2:], axis=1)
 
 
 _PLY_COUNT_ROOM = 40  # digits reserved for the frame and vertex counts of a streamed PLY
@@ -251,6 +295,11 @@ class PointsWriter:
             if width is None:
                 raise ValueError(".npy output needs the row width (longest frame) up front")
             fh.write(_npy_header(0, width))
+        elif ext == ".parquet":
+            self._schema = _parquet_schema(frame)
+            self._parquet = _pyarrow(getattr(fh, "name", "points.parquet")).ParquetWriter(
+                fh, self._schema
+            )
         else:
             head = {"format": POINTS_FORMAT, "frame": frame, "unit": "mm"}
             fh.write(json.dumps(head, separators=(",", ":"))[:-1].encode() + b',"frames":[')
@@ -270,6 +319,9 @@ class PointsWriter:
                 self._fh.write(memoryview(np.ascontiguousarray(pts)).cast("B"))
             self.n_points += len(pts)
             self.n_frames += len(frames)
+            return
+        if self._ext == ".parquet":
+            self._add_parquet(frames)
             return
         for a in frames:
             if np.isinf(a).any():
@@ -299,8 +351,37 @@ class PointsWriter:
                 self.n_points += len(rows)
             self.n_frames += 1
 
+    def _add_parquet(self, frames: list[np.ndarray]) -> None:
+        """One row group: the valid points of `frames`, with frame and pixel indices."""
+        import pyarrow as pa
+
+        if not frames:
+            return
+        a = np.concatenate(frames).astype(np.float64, copy=False)
+        keep = np.isfinite(a).all(axis=1)
+        if not keep.all() and np.isinf(a[~keep]).any():
+            i = next(i for i, f in enumerate(frames) if np.isinf(f).any())
+            raise ValueError(f"frame {self.n_frames + i} points contain infinite values")
+        lengths = np.array([len(f) for f in frames])
+        frame = np.repeat(np.arange(self.n_frames, self.n_frames + len(frames)), lengths)
+        pixel = np.arange(len(a)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        columns = [frame[keep].astype(np.int32), pixel[keep].astype(np.int32)]
+        columns += [np.ascontiguousarray(a[keep, k]) for k in range(3)]
+        if keep.any():
+            self._parquet.write_table(pa.Table.from_arrays(columns, schema=self._schema))
+        self.n_points += int(keep.sum())
+        self.n_frames += len(frames)
+
+    def _abort(self) -> None:
+        """Let go of the file after a failure (the temporary file is then removed)."""
+        if self._ext == ".parquet":
+            with contextlib.suppress(Exception):
+                self._parquet.close()
+
     def _finish(self) -> None:
-        if self._ext == ".ply":
+        if self._ext == ".parquet":
+            self._parquet.close()
+        elif self._ext == ".ply":
             self._fh.seek(0)
             self._fh.write(_ply_points_header(self._frame, self.n_frames, self.n_points,
                                               self._binary))  # fmt: skip
@@ -341,7 +422,11 @@ def open_points_writer(
     with atomic_output(path, overwrite=overwrite) as tmp:
         with open(tmp, "wb") as fh:
             writer = PointsWriter(fh, ext, frame, binary, width)
-            yield writer
+            try:
+                yield writer
+            except BaseException:
+                writer._abort()
+                raise
             writer._finish()
 
 

@@ -56,6 +56,8 @@ def reconstruct_scan(
     chunk_frames: int = 256,
     overwrite: bool = False,
     progress=None,
+    frames=None,
+    width: int | None = None,
 ) -> ScanSummary:
     """Reconstruct a STRIPES.json scan into a point-cloud file, in bounded memory.
 
@@ -68,6 +70,10 @@ def reconstruct_scan(
     - `chunk_frames`: frames per batch.
     - `overwrite`: replace an existing `out`.
     - `progress`: optional wrapper for the chunk iterator (e.g. a tqdm factory).
+    - `frames`: optional iterable of `(N_i, 2)` stripe pixels per frame used instead of
+      reading `stripes` (which then only names the source in messages), e.g.
+      `stripe._folder.folder_stripe_frames` over a folder of images; `.npy` output then
+      needs `width` (an upper bound of the frame lengths).
 
     **Returns:** a `ScanSummary`. **Raises:** `ScanError` (no frames, no valid point),
     `ValueError` for a malformed or cut-short STRIPES file, as `read_calibration`; in
@@ -93,7 +99,11 @@ def reconstruct_scan(
             "(calibrate with a gauge scan in the observations, or use --frame camera)"
         )
     # .npy rows are as long as the longest frame: one cheap first pass finds it.
-    width = max([len(f) for f in iter_stripes(stripes)] + [0]) if ext == ".npy" else None
+    if frames is None:
+        width = max([len(f) for f in iter_stripes(stripes)] + [0]) if ext == ".npy" else None
+        frames = iter_stripes(stripes)
+    elif ext == ".npy" and width is None:
+        raise ValueError(".npy output from a frame iterator needs the row width up front")
     sensor = getattr(loaded, "sensor_size", None)
     stage = loaded.stage if frame == "measurement" else None
     counts = np.zeros(len(REASONS) + 1, np.int64)
@@ -103,7 +113,7 @@ def reconstruct_scan(
         chunks = iter_reconstruct(
             loaded.camera,
             loaded.plane,
-            iter_stripes(stripes),
+            frames,
             stage=stage,
             sensor_size=sensor,
             chunk_frames=chunk_frames,

@@ -4,6 +4,11 @@ NumPy/OpenCV only: never called inside traced JAX code.
 """
 
 from ._extract import extract_stripe as extract_stripe, extract_stripes as extract_stripes
+from ._folder import (
+    FrameStripes as FrameStripes,
+    frame_files as frame_files,
+    iter_folder_stripes as iter_folder_stripes,
+)
 from ._image import CHANNELS as CHANNELS
 from ._kernels import steger_sigma as steger_sigma
 from ._mask import region_mask as region_mask

@@ -80,21 +80,26 @@ def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.
     """Leave-one-out prediction of `y` at each scan line from a weighted quadratic fit
     over the scan lines within ± `half`, and the number of points it used.
 
-    Windowed power sums come from prefix sums (O(N)); the local coordinate
+    `w` is (N,) or (M, N): M weightings of the same `y` at once (one set of array
+    operations for all of them). Windowed power sums come from prefix sums (O(N)) read
+    with two slices of an edge-padded cumulative sum; the local coordinate
     `t = (x - i) / half` is expanded binomially from sums in `x / half`.
     """
     n = y.size
+    single = w.ndim == 1
+    w = np.atleast_2d(w)
     u = np.arange(n, dtype=np.float64) / half
     yw = np.where(w > 0, y, 0.0) * w
-    lo = np.clip(np.arange(n) - half, 0, n)
-    hi = np.clip(np.arange(n) + half + 1, 0, n)
     # windowed sums of w u^k (k <= 4) and w y u^k (k <= 2) from one cumulative sum
     u2 = u * u
     cols = np.stack([w, w * u, w * u2, w * u2 * u, w * u2 * u2, yw, yw * u, yw * u2], 1)
-    c = np.zeros((n + 1, 8))
-    np.cumsum(cols, axis=0, out=c[1:])
-    win = c[hi] - c[lo]
-    S0, S1, S2, S3, S4, T0, T1, T2 = win.T
+    # c[..., j] = sum over scan lines < j - half - 1 (zeros before, the total after), so
+    # that the window [i - half, i + half] is c[i + 2 half + 1] - c[i]
+    c = np.zeros(cols.shape[:2] + (n + 2 * half + 1,))
+    np.cumsum(cols, axis=2, out=c[:, :, half + 1 : n + half + 1])
+    c[:, :, n + half + 1 :] = c[:, :, n + half : n + half + 1]
+    win = c[:, :, 2 * half + 1 :] - c[:, :, :n]
+    S0, S1, S2, S3, S4, T0, T1, T2 = (win[:, k] for k in range(8))
     # the same sums in the local coordinate t = u_j - u_i (binomial expansion)
     a = u
     a2 = a * a
@@ -119,8 +124,9 @@ def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.
     num = t0 * c00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)
     count = St[0]
     good = (count >= 6) & (np.abs(det) > 1e-9 * np.maximum(s0, 1.0) ** 3)
-    pred = num / np.where(good, det, 1.0)
-    return np.where(good, pred, np.nan), np.where(good, count, 0.0)
+    pred = np.where(good, num / np.where(good, det, 1.0), np.nan)
+    count = np.where(good, count, 0.0)
+    return (pred[0], count[0]) if single else (pred, count)
 
 
 def consistent(
@@ -166,16 +172,31 @@ def consistent(
     off_curve = np.zeros(valid.shape, bool)
     off_curve[x[~seed]] = True
     keep &= ~off_curve
+    fits: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = []
+
+    def fit(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`_local_fit` with these weights (a fit already made with equal ones is reused)."""
+        for done, result in fits:
+            if np.array_equal(done, weights):
+                return result
+        result = _local_fit(yv, weights.astype(np.float64), half)
+        fits.append((weights, result))
+        return result
+
     for step, (factor, floor) in enumerate(((3.0, 1.0), (5.0, floor_px))):
-        pred, count = _local_fit(yv, keep.astype(np.float64), half)
         if step == 0 and off_curve.any():
+            # both fits of the first pass in one call (two weightings of the same y)
+            both = np.stack([keep, valid]).astype(np.float64)
+            (pred, pred_all), (count, count_all) = _local_fit(yv, both, half)
+            fits += [(keep, (pred, count)), (valid, (pred_all, count_all))]
             # A piece of line the global cubic does not follow (a strongly curved line,
             # a piece beyond a gap) is judged by its own points when it has enough
             # of them to be a line on its own (at least 30 in the window).
-            pred_all, count_all = _local_fit(yv, valid.astype(np.float64), half)
             own = (count < 6) & (count_all >= 30)
             pred = np.where(own, pred_all, pred)
             count = np.where(own, count_all, count)
+        else:
+            pred, count = fit(keep)
         r = np.abs(yv - pred)
         judged = valid & (count >= 6) & np.isfinite(r)
         if not judged.any():

@@ -61,6 +61,38 @@ def _derivative_images(img: np.ndarray, sigma: float) -> list[np.ndarray]:
     ]
 
 
+_ONE = np.ones((1, 1), np.float32)
+
+
+def _band_derivatives(comp: np.ndarray, crop: int, sigma: float) -> list[np.ndarray]:
+    """The smoothed band `comp` and r_x, r_y, r_xx, r_xy, r_yy of its rows
+    `crop .. -crop`, from three row passes and six column passes (nine 1-D filters
+    instead of the twelve of six separable filters). OpenCV's separable filter runs the
+    row pass first, then the column pass, both in float32; split into a row pass (column
+    kernel `[1]`) and a column pass (row kernel `[1]`) it gives the same numbers bit for
+    bit, so the band's centres are those of `_derivative_images` on the same rows."""
+    k0, k1, k2 = gaussian_kernels(sigma)
+    inner = comp[crop : comp.shape[0] - crop]
+
+    def rows(a, k):
+        return cv2.sepFilter2D(a, cv2.CV_32F, k, _ONE, borderType=cv2.BORDER_REPLICATE)
+
+    def cols(a, k):
+        return cv2.sepFilter2D(a, cv2.CV_32F, _ONE, k, borderType=cv2.BORDER_REPLICATE)
+
+    h0 = rows(comp, k0)
+    h0_inner = h0[crop : comp.shape[0] - crop]
+    h1, h2 = rows(inner, k1), rows(inner, k2)
+    return [
+        cols(h0, k0),
+        cols(h1, k0),
+        cols(h0_inner, k1),
+        cols(h2, k0),
+        cols(h1, k1),
+        cols(h0_inner, k2),
+    ]
+
+
 def _line_points(rx, ry, rxx, rxy, ryy):
     """Normal (nx, ny), eigenvalue λ, Taylor step t and the line-point test."""
     half_diff = 0.5 * (rxx - ryy)
@@ -309,12 +341,10 @@ def steger_band(
     cols_idx = np.clip(cols_idx, 0, w - 1)[None, :, :]
     comp = gather(rows_idx, cols_idx).reshape(height, n_tiles * tile_w)
     comp = comp.astype(np.float32, copy=False)
-    k0 = gaussian_kernels(sigma)[0]
-    smooth = cv2.sepFilter2D(comp, cv2.CV_32F, k0, k0, borderType=cv2.BORDER_REPLICATE)
     # The derivatives are only read within ± (search + 1) rows of the track.
     k_search = _SEARCH + 1
     crop = margin - k_search
-    d = _derivative_images(comp[crop : height - crop], sigma)[1:]
+    smooth, *d = _band_derivatives(comp, crop, sigma)
 
     cols = np.arange(w)
     tile = cols // _TILE

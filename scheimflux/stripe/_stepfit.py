@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import ndtr
 
 from ._kernels import FWHM_PER_SIGMA
 
@@ -49,6 +48,8 @@ _NP = 5  # nonlinear parameters: e, c, s, b, k
 
 def _design(y, p):
     """The two basis profiles (n, m) of the linear parameters at nonlinear ones p (n, 5)."""
+    from scipy.special import ndtr  # here, not at import: SciPy is slow to import
+
     e, c, s, b, k = (p[:, i : i + 1] for i in range(_NP))
     t = y - c
     ee = e - c
