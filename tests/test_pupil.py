@@ -149,7 +149,7 @@ def test_vignetting_is_counted(world):
     assert not bool(img.valid[-1]) and float(img.fraction[-1]) == 0.0
     assert bool(jnp.all(jnp.isfinite(img.uv))) and bool(jnp.all(jnp.isfinite(img.cov_px2)))
     # The host-side batch marks it NaN (the observations' "not seen").
-    uv, ok, fr, _ = pupil_points(rig, np.asarray(far), pupil_grid(16))
+    uv, ok, fr, _ = pupil_points(rig, np.asarray(far), pupil_grid(16), chunk=len(_FIELD))
     assert not ok[-1] and np.all(np.isnan(uv[-1])) and ok[:-1].all()
     np.testing.assert_allclose(uv[:-1], np.asarray(_image(rig, far, rings=16).uv)[:-1], atol=1e-9)
 
@@ -186,3 +186,33 @@ def test_f_number_parameter(world):
     closed = pupil_image(rig, X, pupil_grid(16).padded(_N), f_number=9.0)
     half = _image(rig, X, stop_scale=0.5)  # f/4.5 → f/9: the stop radius halves
     np.testing.assert_allclose(np.asarray(closed.uv), np.asarray(half.uv), atol=1e-6)
+
+
+@pytest.mark.slow
+def test_observations_with_centroid_imaging(world):
+    """`simulate_observations(imaging="centroid")`: same poses and noise draws as the
+    chief-ray data, pixels moved to the pupil centroids of the same 3-D points."""
+    from scheimflux.simulate import simulate_observations
+    from scheimflux.targets import Checkerboard
+
+    rig, _, _ = world
+    board = Checkerboard(11, 8, 0.9)
+    kw = dict(n_views=2, stage_scan=False, seed=3, corner_noise_px=0.03)
+    obs_c, truth_c = simulate_observations(rig, board, **kw)
+    sampling = pupil_grid(16)
+    obs_p, truth_p = simulate_observations(rig, board, imaging="centroid", pupil=sampling, **kw)
+    assert truth_p.rig["imaging"] == "centroid" and truth_c.rig["imaging"] == "chief"
+    np.testing.assert_allclose(truth_p.corners_c, truth_c.corners_c)  # same poses
+    both = np.isfinite(truth_p.corners_px[..., 0]) & np.isfinite(truth_c.corners_px[..., 0])
+    assert both.sum() > 100
+    noise_c = np.stack([v.corners_px for v in obs_c.views]) - truth_c.corners_px
+    noise_p = np.stack([v.corners_px for v in obs_p.views]) - truth_p.corners_px
+    np.testing.assert_allclose(noise_p[both], noise_c[both], atol=1e-9)  # same draws
+    uv, ok, _, _ = pupil_points(rig, truth_p.corners_c.reshape(-1, 3), sampling)
+    np.testing.assert_allclose(truth_p.corners_px[both], uv.reshape(-1, 88, 2)[both], atol=1e-9)
+    shift = np.linalg.norm(truth_p.corners_px[both] - truth_c.corners_px[both], axis=1)
+    assert shift.max() > 0.1  # f/4.5 Tessar: the centroid is not the chief ray
+    for s_p in truth_p.stripe_px:
+        assert np.all(np.isfinite(s_p))
+    with pytest.raises(ValueError, match="imaging must be 'chief' or 'centroid'"):
+        simulate_observations(rig, board, imaging="marginal", **kw)

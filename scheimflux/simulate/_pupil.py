@@ -185,11 +185,15 @@ def pupil_points(
     *,
     f_number: float | None = None,
     min_fraction: float = 0.0,
+    on_sensor: bool = True,
+    chunk: int = _CHUNK,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Host-side batch of [`pupil_image`][] in fixed-size chunks (one compilation for any N).
 
     **Arguments:** `X` `(N, 3)` camera-frame points; `min_fraction`: also call a spot
-    invalid when less than this share of its light passes (0: any light at all).
+    invalid when less than this share of its light passes (0: any light at all);
+    `on_sensor=False`: keep centroids that fall off the sensor (renderers need them);
+    `chunk`: points per compiled call.
 
     **Returns:** `(uv, valid, fraction, sigma_px)`: centroids `(N, 2)` (NaN where not
     valid: no light passed, too little, or off the sensor), validity `(N,)`, transmitted
@@ -207,13 +211,14 @@ def pupil_points(
     sig = np.full(n, np.nan)
     if n == 0:
         return uv, ok, frac, sig
-    pad = (-n) % _CHUNK
+    chunk = int(chunk)
+    pad = (-n) % chunk
     Xp = np.concatenate([X, np.repeat(X[-1:], pad, axis=0)]) if pad else X
-    for k in range(0, len(Xp), _CHUNK):
-        img = pupil_image(rig, jnp.asarray(Xp[k : k + _CHUNK]), sampling)
-        m = min(_CHUNK, n - k)
+    for k in range(0, len(Xp), chunk):
+        img = pupil_image(rig, jnp.asarray(Xp[k : k + chunk]), sampling)
+        m = min(chunk, n - k)
         uv[k : k + m] = np.asarray(img.uv)[:m]
-        ok[k : k + m] = np.asarray(img.valid)[:m]
+        ok[k : k + m] = np.asarray(img.valid if on_sensor else img.fraction > 0)[:m]
         frac[k : k + m] = np.asarray(img.fraction)[:m]
         sig[k : k + m] = np.asarray(img.sigma_px)[:m]
     ok &= frac > float(min_fraction)
