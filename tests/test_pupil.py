@@ -216,3 +216,24 @@ def test_observations_with_centroid_imaging(world):
         assert np.all(np.isfinite(s_p))
     with pytest.raises(ValueError, match="imaging must be 'chief' or 'centroid'"):
         simulate_observations(rig, board, imaging="marginal", **kw)
+
+
+@pytest.mark.slow
+def test_rig_board_maps_for_the_renderer(world):
+    from scheimflux.geometry._transforms import Pose
+    from scheimflux.simulate import rig_board_maps
+
+    rig, X, chief = world
+    T = Pose(np.zeros(3), np.asarray(X[3]))  # board plane through a mid-field point
+    xy = np.array([[0.0, 0.0], [0.5, -0.3], [1.0, 1.0]])
+    to_px, sigma = rig_board_maps(rig, T, imaging="centroid", sampling=pupil_grid(16))
+    pts = np.concatenate([xy, np.zeros((3, 1))], axis=1) + np.asarray(X[3])
+    uv, ok, _, sig = pupil_points(rig, pts, pupil_grid(16), on_sensor=False)
+    np.testing.assert_allclose(to_px(xy), uv, atol=1e-9)
+    np.testing.assert_allclose(sigma(xy), sig, atol=1e-12)
+    assert np.all(sig > 0.1)  # f/4.5: the spot is more than a tenth of a pixel
+    to_px, blur = rig_board_maps(rig, T)
+    assert blur == 0.0
+    np.testing.assert_allclose(to_px(xy)[0], chief[3], atol=1e-9)
+    with pytest.raises(ValueError, match="imaging must be"):
+        rig_board_maps(rig, T, imaging="splat")
