@@ -14,7 +14,7 @@ default options, and OpenCV's tilted model, `model="opencv", opencv_flags="tilte
 another model name (e.g. a non-central camera) is passed through to `calibrate(model=)`.
 
 Error: laser-plane points on a 16 × 13 grid over 5 … 95 % of the sensor, imaged by the
-same pupil-integrated tracer (noise-free), reconstructed with each calibration
+same tracer as the data (pupil centroids; chief rays with `--imaging chief`; noise-free), reconstructed with each calibration
 (`stripe_to_camera`); the RMS over all pairs of the error of their distances, in µm,
 median over the seeds. Points outside the boards' coverage are included (that is where
 the models extrapolate). `--quick`: tessar, ×0.5, one seed.
@@ -33,6 +33,7 @@ from scheimflux.calibrate import calibrate
 from scheimflux.reconstruct._reconstruct import stripe_to_camera
 from scheimflux.simulate import build_rig, load_lens, simulate_observations
 from scheimflux.simulate._pupil import pupil_grid, pupil_points
+from scheimflux.simulate._scenes import trace_points
 from scheimflux.targets._board import Checkerboard
 
 SENSOR = (2448, 2048)
@@ -51,15 +52,19 @@ def _board(magnification: float) -> Checkerboard:
     return Checkerboard(11, 8, square)
 
 
-def _grid_points(rig, sampling):
-    """Laser-plane truth points over the sensor and their pupil-integrated pixels."""
+def _grid_points(rig, sampling, imaging):
+    """Laser-plane truth points over the sensor and their pixels, imaged like the data
+    (pupil centroids, or chief rays for `--imaging chief`)."""
     w, h = rig.sensor_size
     g = np.stack(
         np.meshgrid(np.linspace(0.05, 0.95, 16) * (w - 1), np.linspace(0.05, 0.95, 13) * (h - 1)),
         -1,
     ).reshape(-1, 2)
     X = np.asarray(rig.laser_points(g))
-    uv, ok, _, _ = pupil_points(rig, X, sampling)
+    if imaging == "chief":
+        uv, ok = trace_points(rig, X)
+    else:
+        uv, ok, _, _ = pupil_points(rig, X, sampling)
     return X[ok], uv[ok]
 
 
@@ -89,7 +94,7 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings):
         lens = lens.with_f_number(f_number)
     rig = build_rig(lens, mag, sensor=SENSOR, pixel_pitch_mm=(PITCH_MM, PITCH_MM))
     sampling = pupil_grid(rings)
-    X, uv = _grid_points(rig, sampling)
+    X, uv = _grid_points(rig, sampling, imaging)
     errs = {m: [] for m in models}
     flags = {m: "" for m in models}
     for seed in seeds:
