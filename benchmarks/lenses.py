@@ -15,9 +15,9 @@ another model name (e.g. a non-central camera) is passed through to `calibrate(m
 
 Error: laser-plane points on a 16 × 13 grid over 5 … 95 % of the sensor, imaged by the
 same tracer as the data (pupil centroids; chief rays with `--imaging chief`; noise-free),
-reconstructed with each calibration (`stripe_to_camera`); the RMS over all pairs of the error of their distances, in µm,
-median over the seeds. Points outside the boards' coverage are included (that is where
-the models extrapolate). `--quick`: tessar, ×0.5, one seed.
+reconstructed with each calibration (`stripe_to_camera`); the RMS over all pairs of the
+error of their distances, in µm, median over the seeds. Points outside the boards'
+coverage are included (that is where the models extrapolate). `--quick`: tessar, ×0.5, one seed.
 """
 
 from __future__ import annotations
