@@ -120,7 +120,11 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings):
             errs[m].append(_pair_error_um(cal, X, uv))
             if not conv:
                 flags[m] = " (not converged)"
-    return {m: (float(np.nanmedian(errs[m])) if errs[m] else math.nan, flags[m]) for m in models}
+    def median(v):
+        v = np.asarray(v, dtype=float)
+        return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
+
+    return {m: (median(errs[m]), flags[m]) for m in models}
 
 
 def main(argv=None) -> None:
