@@ -1,5 +1,11 @@
 """Ground truth: Snell's-law ray tracing through real lenses, rigs, scenes and images."""
 
+from ._glass import (
+    GLASSES as GLASSES,
+    Glass as Glass,
+    glass_index as glass_index,
+    known_glasses as known_glasses,
+)
 from ._images import write_scene_images as write_scene_images
 from ._lens import (
     Lens as Lens,
@@ -20,10 +26,18 @@ from ._observe import (
     truth_to_dict as truth_to_dict,
     write_truth as write_truth,
 )
+from ._pupil import (
+    PupilImage as PupilImage,
+    PupilSampling as PupilSampling,
+    pupil_grid as pupil_grid,
+    pupil_image as pupil_image,
+    pupil_points as pupil_points,
+)
 from ._render_board import (
     BoardMap as BoardMap,
     board_map as board_map,
     render_checkerboard as render_checkerboard,
+    rig_board_maps as rig_board_maps,
 )
 from ._render_capture import (
     CaptureTruth as CaptureTruth,

@@ -16,6 +16,12 @@ JSON format (`scheimflux/simulate/lenses/*.json`):
               {"radius": null, "thickness": 12.4, "index": 1.0, "stop": true}, ...]}
 ```
 
+A surface may name its glass (`"glass": "N-SK16"`) instead of giving `"index"`: the index
+is then computed from the glass's Sellmeier coefficients at `wavelength_nm` (the table in
+`_glass.py`). When both are given and the glass is in the table, they must agree to
+2e-4 (the rounding of older files). Passing `wavelength_nm=` to the loaders re-evaluates
+every glass at another wavelength.
+
 Paraxial data come from a y–nu (ABCD) trace with reduced angles nu; every quantity is
 returned as a z position in lens coordinates.
 """
@@ -33,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._glass import GLASSES, glass_index
 from ._trace import Surfaces
 
 _LENS_DIR = Path(__file__).parent / "lenses"
@@ -115,6 +122,20 @@ class Lens(eqx.Module):
         """The same lens with the aperture stop opened or closed to `semi_diameter` mm."""
         sd = self.semi_diameters.at[self.stop].set(semi_diameter)
         return eqx.tree_at(lambda lens: lens.semi_diameters, self, sd)
+
+    @property
+    def f_number(self) -> Float[Array, ""]:
+        """Working f-number at infinity, N = f / (2 × entrance-pupil semi-diameter)."""
+        par = paraxial(self)
+        return par.efl / (2.0 * par.entrance_pupil_semi_diameter)
+
+    def with_f_number(self, f_number: float) -> Lens:
+        """The same lens with the stop set for f-number `f_number` (N = f / D_entrance)."""
+        if not (f_number > 0 and math.isfinite(f_number)):
+            raise ValueError(f"f_number must be a positive number, got {f_number}")
+        par = paraxial(self)
+        sd = float(par.efl) / (2.0 * float(f_number) * abs(float(par.entrance_pupil_magnification)))
+        return self.with_stop_semi_diameter(sd)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON-ready prescription (inverse of [`lens_from_dict`][])."""
@@ -262,8 +283,44 @@ def _number(value: Any, what: str) -> float:
     return value
 
 
-def lens_from_dict(data: Any, *, source: str = "lens") -> Lens:
+_INDEX_TOL = 2e-4  # explicit index vs Sellmeier: older files give indices to 5 decimals
+
+
+def _surface_index(s: dict, where: str, wavelength: float, override: bool) -> float:
+    """The index after a surface: explicit, or from its glass's Sellmeier formula."""
+    glass = s.get("glass")
+    if glass is not None and not isinstance(glass, str):
+        raise ValueError(f"{where}: 'glass' must be a string, got {glass!r}")
+    known = glass in GLASSES
+    if "index" not in s:
+        if glass is None:
+            raise ValueError(f"{where}: missing key 'index' (or a 'glass' to compute it from)")
+        return glass_index(glass, wavelength)  # raises, naming the known glasses
+    n = _number(s["index"], f"{where}: index")
+    if known:
+        n_glass = glass_index(glass, wavelength)
+        if override:
+            return n_glass
+        if abs(n - n_glass) > _INDEX_TOL:
+            raise ValueError(
+                f"{where}: index {n} disagrees with glass {glass} at {wavelength} nm "
+                f"({n_glass:.5f}, Sellmeier)"
+            )
+    elif override and n != 1.0:
+        raise ValueError(
+            f"{where}: cannot evaluate index {n} at another wavelength: name a known glass "
+            f"({', '.join(sorted(GLASSES))})"
+        )
+    return n
+
+
+def lens_from_dict(
+    data: Any, *, source: str = "lens", wavelength_nm: float | None = None
+) -> Lens:
     """Build and validate a [`Lens`][] from a parsed JSON prescription.
+
+    `wavelength_nm` (default: the file's) re-evaluates every surface's glass index at
+    another wavelength (every glass surface must then name a glass of the table).
 
     **Raises:** `ValueError` with a message naming the offending surface for: a missing or
     malformed key, no aperture stop or more than one, a zero radius, a non-positive
@@ -287,6 +344,9 @@ def lens_from_dict(data: Any, *, source: str = "lens") -> Lens:
     wavelength = _number(data["wavelength_nm"], f"{source}: 'wavelength_nm'")
     if wavelength <= 0:
         raise ValueError(f"{source}: 'wavelength_nm' must be positive, got {wavelength}")
+    override = wavelength_nm is not None and float(wavelength_nm) != wavelength
+    if wavelength_nm is not None:
+        wavelength = _number(wavelength_nm, f"{source}: wavelength_nm")
     surfaces = data["surfaces"]
     if not isinstance(surfaces, list) or len(surfaces) < 1:
         raise ValueError(f"{source}: 'surfaces' must be a non-empty list")
@@ -299,7 +359,7 @@ def lens_from_dict(data: Any, *, source: str = "lens") -> Lens:
         unknown = set(s) - _SURFACE_KEYS
         if unknown:
             raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}")
-        for key in ("radius", "thickness", "index"):
+        for key in ("radius", "thickness"):
             if key not in s:
                 raise ValueError(f"{where}: missing key {key!r}")
         r = s["radius"]
@@ -311,7 +371,7 @@ def lens_from_dict(data: Any, *, source: str = "lens") -> Lens:
             raise ValueError(f"{where}: thickness must be positive, got {t}")
         if t < 0.0:
             raise ValueError(f"{where}: the last thickness must be >= 0, got {t}")
-        n = _number(s["index"], f"{where}: index")
+        n = _surface_index(s, where, wavelength, override)
         if n <= 0.0:
             raise ValueError(f"{where}: index must be positive, got {n}")
         sd = s.get("semi_diameter")
@@ -364,8 +424,8 @@ def _check_first_order(r, t, n_after, sd, source: str) -> None:
             )
 
 
-def read_lens(path: str | os.PathLike) -> Lens:
-    """Load and validate a lens prescription from a JSON file."""
+def read_lens(path: str | os.PathLike, *, wavelength_nm: float | None = None) -> Lens:
+    """Load and validate a lens prescription from a JSON file (see [`lens_from_dict`][])."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -375,7 +435,7 @@ def read_lens(path: str | os.PathLike) -> Lens:
         data = json.loads(text)
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: malformed JSON: {err}") from None
-    return lens_from_dict(data, source=str(path))
+    return lens_from_dict(data, source=str(path), wavelength_nm=wavelength_nm)
 
 
 def shipped_lenses() -> list[str]:
@@ -383,13 +443,15 @@ def shipped_lenses() -> list[str]:
     return sorted(p.stem for p in _LENS_DIR.glob("*.json"))
 
 
-def load_lens(name: str) -> Lens:
-    """Load a shipped prescription by name (e.g. `"double-gauss"`); see [`shipped_lenses`][]."""
+def load_lens(name: str, *, wavelength_nm: float | None = None) -> Lens:
+    """Load a shipped prescription by name (e.g. `"double-gauss"`); see [`shipped_lenses`][].
+
+    `wavelength_nm`: evaluate the glasses at another wavelength (Sellmeier)."""
     names = shipped_lenses()
     if name not in names:
         raise ValueError(f"unknown lens {name!r}; shipped lenses: {', '.join(names)}")
     text = (_LENS_DIR / f"{name}.json").read_text()
-    return lens_from_dict(json.loads(text), source=f"{name}.json")
+    return lens_from_dict(json.loads(text), source=f"{name}.json", wavelength_nm=wavelength_nm)
 
 
 def resolve_lens(name_or_path: str | os.PathLike) -> Lens:

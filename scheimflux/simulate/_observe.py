@@ -9,6 +9,12 @@ ring gauge on a rotary table, and returns
 - [`Truth`][]: the board poses, the laser plane, the stage and the gauge, the exact
   (noise-free) pixels and 3-D points, and the rig's paraxial nominal parameters.
 
+With `imaging="centroid"` every pixel (corners, stripe points, stage frames) is the
+centroid of the ray bundle filling the aperture stop ([`pupil_image`][]) instead of the
+chief ray's hit; the noise realisation is the same as for `imaging="chief"` (same seed),
+and points whose bundle is entirely vignetted or whose centroid leaves the sensor margin
+are dropped (corners: NaN rows), never NaN-valued.
+
 `write_truth` stores the truth as JSON (`"format": "scheimflux.truth/1"`) for tests and
 benchmarks; `read_truth` reads it back. Everything is seeded and deterministic.
 """
@@ -21,6 +27,7 @@ import os
 from collections.abc import Sequence
 from numbers import Integral, Real
 
+import equinox as eqx
 import numpy as np
 from jaxtyping import ArrayLike
 
@@ -30,10 +37,14 @@ from ..io._files import load_json, write_json
 from ..io._observations import Nominal, Observations, StageScan, View
 from ..targets._target import Target
 from ._lens import paraxial
+from ._pupil import PupilSampling, pupil_grid, pupil_points
 from ._rig import Rig
 from ._scenes import (
+    GaugeScan,
+    StripeProfile,
     _board_stripe_points,
     _field,
+    _inside,
     _trace_stripes,
     board_poses,
     default_stage,
@@ -141,6 +152,9 @@ def simulate_observations(
     eccentricity_mm: ArrayLike | Sequence = (0.05, -0.03),
     wobble_rad: Real = 0.0,
     seed: Integral = 0,
+    imaging: str = "chief",
+    f_number: Real | None = None,
+    pupil: PupilSampling | None = None,
 ) -> tuple[Observations, Truth]:
     """Simulate a calibration data set by ray tracing through `rig`.
 
@@ -155,12 +169,21 @@ def simulate_observations(
       ([`default_stage`][], [`gauge_scan`][]): `n_frames` frames `delta_omega_deg` apart,
       the gauge off the table axis by `eccentricity_mm` and tilted by `wobble_rad`.
     - `seed`: all randomness (poses and noise) derives from it.
+    - `imaging`: `"chief"` (default): a point's pixel is its chief ray's hit;
+      `"centroid"`: the centroid of the bundle filling the stop ([`pupil_image`][]), what
+      a sensor records at full aperture (coma, vignetting). Same poses and noise draws.
+    - `f_number`: set the lens's working f-number first (default: the rig's stop).
+    - `pupil`: the stop quadrature for `"centroid"` (default `pupil_grid(8)`, 136 rays).
 
     **Returns:** `(observations, truth)`: an `Observations` (noisy pixels, NaN for corners
     not seen; `nominal` with the focal length rounded to 1 mm, |β| to 0.01 and the tilt to
     1°) and the exact [`Truth`][].
     """
     seed = int(seed)
+    if imaging not in ("chief", "centroid"):
+        raise ValueError(f"imaging must be 'chief' or 'centroid', got {imaging!r}")
+    if f_number is not None:
+        rig = eqx.tree_at(lambda r: r.lens, rig, rig.lens.with_f_number(float(f_number)))
     views = board_poses(rig, board, int(n_views), seed=seed, noise_px=float(corner_noise_px))
     field = _field(rig)
     stripe_sets = [_board_stripe_points(rig, field, v.T_c_b, board, 2.0) for v in views]
@@ -179,6 +202,10 @@ def simulate_observations(
             noise_px=float(stripe_noise_px),
             seed=seed + 2,
         )
+
+    if imaging == "centroid":
+        sampling = pupil_grid(8) if pupil is None else pupil
+        views, stripes, scan = _reimage(rig, sampling, views, stripes, scan)
 
     w, h = rig.sensor_size
     obs = Observations(
@@ -200,7 +227,7 @@ def simulate_observations(
         stripe_px=[s.px_true for s in stripes],
         stripe_c=[s.points_c for s in stripes],
         nominal_params=rig.nominal_thick_lens_params(),
-        rig=_rig_description(rig),
+        rig=dict(_rig_description(rig), imaging=imaging, f_number=_finite(rig.lens.f_number)),
         stage=stage,
         gauge_radius_mm=None if scan is None else scan.radius,
         eccentricity_mm=None if scan is None else scan.eccentricity_mm,
@@ -211,6 +238,50 @@ def simulate_observations(
         seed=seed,
     )
     return obs, truth
+
+
+def _finite(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _reimage(rig: Rig, sampling: PupilSampling, views, stripes, scan):
+    """Replace chief-ray pixels by pupil centroids, keeping each point's noise draw."""
+    sets = [v.points_c for v in views] + [s.points_c for s in stripes]
+    if scan is not None:
+        sets += [f.points_c for f in scan.frames]
+    sizes = [len(np.reshape(x, (-1, 3))) for x in sets]
+    X = np.concatenate([np.reshape(x, (-1, 3)) for x in sets])
+    uv_all, ok_all, _, _ = pupil_points(rig, X, sampling)
+    parts, start = [], 0
+    for size in sizes:
+        parts.append((uv_all[start : start + size], ok_all[start : start + size]))
+        start += size
+
+    new_views = []
+    for v, (uv, ok) in zip(views, parts[: len(views)]):
+        vis = v.visible & ok & _inside(rig, uv, 10.0)  # the corner margin of board_poses
+        uv = np.where(vis[:, None], uv, np.nan)
+        new_views.append(dataclasses.replace(v, visible=vis, px_true=uv, px=uv + v.px - v.px_true))
+
+    def profile(s, uv, ok, margin):
+        keep = ok & _inside(rig, uv, margin)
+        return keep, StripeProfile(s.points_c[keep], uv[keep], (uv + s.px - s.px_true)[keep])
+
+    n = len(views)
+    new_stripes = [profile(s, *parts[n + k], 5.0)[1] for k, s in enumerate(stripes)]
+    if scan is not None:
+        frames = []
+        for k, f in enumerate(scan.frames):
+            keep, prof = profile(f, *parts[n + len(stripes) + k], 5.0)
+            frames.append(
+                dataclasses.replace(
+                    f, points_c=prof.points_c, points_m=f.points_m[keep], px_true=prof.px_true,
+                    px=prof.px,
+                )
+            )  # fmt: skip
+        scan = GaugeScan(scan.stage, scan.radius, scan.eccentricity_mm, scan.wobble_rad, frames)
+    return new_views, new_stripes, scan
 
 
 # ----------------------------------------------------------------------------- files

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-__all__ = ["BoardMap", "board_map", "render_checkerboard"]
+__all__ = ["BoardMap", "board_map", "render_checkerboard", "rig_board_maps"]
 
 _CHUNK_ELEMENTS = 1 << 20  # sub-samples evaluated at once
 
@@ -299,6 +299,54 @@ def _blur(img: np.ndarray, sigma: np.ndarray | float) -> np.ndarray:
         sel = i == k
         out[sel] = (1 - w[sel]) * stack[k][sel] + w[sel] * stack[k + 1][sel]
     return out
+
+
+def rig_board_maps(
+    rig: Any, T_c_b: Any, *, imaging: str = "chief", sampling: Any = None
+) -> tuple[Callable, float | Callable]:
+    """`board_to_pixel` and `blur_sigma_px` for [`render_checkerboard`][] through a rig.
+
+    **Arguments:**
+    - `rig`: a `Rig`; `T_c_b`: the board pose (camera from board).
+    - `imaging`: `"chief"`: board points imaged by their chief rays, no blur;
+      `"centroid"`: by the centroid of the bundle filling the stop
+      (`simulate._pupil.pupil_points`), and each point blurred by the Gaussian fit of its
+      spot: an isotropic Gaussian of σ = sqrt(trace(cov) / 2) px, cov the bundle's second
+      moments on the sensor (a Gaussian fit of the ray bundle, not a splat of its rays:
+      coma's asymmetry moves the centroid, which the map carries, but not the blur).
+    - `sampling`: the stop quadrature for `"centroid"` (default `pupil_grid(6)`).
+
+    **Returns:** `(board_to_pixel, blur_sigma_px)`; pixels are NaN only where no ray of the
+    bundle gets through.
+    """
+    import jax.numpy as jnp
+
+    from ._pupil import pupil_grid, pupil_points
+
+    R = np.asarray(T_c_b.R, dtype=np.float64)
+    t = np.asarray(T_c_b.translation, dtype=np.float64)
+
+    def posed(xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, dtype=np.float64)
+        return xy @ R[:, :2].T + t
+
+    if imaging == "chief":
+
+        def chief(xy):  # the hit of every traced chief ray, on or off the sensor
+            return np.asarray(rig.project(jnp.asarray(posed(xy)))[0])
+
+        return chief, 0.0
+    if imaging != "centroid":
+        raise ValueError(f"imaging must be 'chief' or 'centroid', got {imaging!r}")
+    sampling = pupil_grid(6) if sampling is None else sampling
+
+    def centroid(xy):
+        return pupil_points(rig, posed(xy), sampling, on_sensor=False)[0]
+
+    def sigma(xy):
+        return pupil_points(rig, posed(xy), sampling, on_sensor=False)[3]
+
+    return centroid, sigma
 
 
 def render_checkerboard(
