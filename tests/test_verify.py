@@ -194,3 +194,63 @@ def test_artefact_scenes_measured_with_the_model_camera(rig, model):
     np.testing.assert_array_equal(lab, st.labels[0])  # faces numbered from smaller u
     h = np.abs(np.asarray(fit_shape(Steps(n_faces=4), Xc, lab).values))
     np.testing.assert_allclose(h, [1.0, 1.5, 2.0], atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+@pytest.mark.slow  # one joint calibration (minutes on 2 shared cores) and three verifies
+def test_verify_end_to_end_on_ray_traced_artefacts(rig, tmp_path, capsys):
+    import json
+
+    from scheimflux.io import write_calibration, write_observations
+    from scheimflux.simulate import simulate_observations
+    from scheimflux.targets import Checkerboard
+
+    # eccentric gauge, full turn: an axis the warning calls determined
+    obs, truth = simulate_observations(
+        rig, Checkerboard(11, 8, 0.3), n_views=12, eccentricity_mm=(0.4, -0.3), seed=2
+    )
+    cal = sf.calibrate(obs)
+    cal_path, obs_path = str(tmp_path / "cal.json"), str(tmp_path / "obs.json")
+    write_calibration(cal_path, cal)
+    write_observations(obs_path, obs)
+    stage = truth.stage
+    scenes = {
+        "cylinder:17.2": (ring_artefact(rig, stage, 17.2, noise_px=0.05, seed=7), []),
+        "sphere-pair:{D}": (
+            sphere_pair_artefact(rig, stage, delta_omega_deg=1.0, noise_px=0.05, seed=8),
+            ["--delta-omega-deg", "1.0"],
+        ),
+        "steps:1.0,1.5,2.0": (stepped_gauge_artefact(rig, noise_px=0.05, seed=9), []),
+    }
+    for spec, (scene, extra) in scenes.items():
+        spec = spec.format(D=f"{scene.nominal_mm[0]:.9f}")
+        scan = str(tmp_path / f"{scene.kind}.json")
+        write_stripes(scan, scene.px)
+        res = str(tmp_path / f"{scene.kind}-result.json")
+        rc, out, err = _run(
+            ["verify", cal_path, scan, "--artefact", spec, "--observations", obs_path,
+             "--sigma-px", "0.05", "--out", res, *extra],
+            capsys,
+        )  # fmt: skip
+        print(out)
+        with open(res) as fh:
+            doc = json.load(fh)
+        assert doc["format"] == "scheimflux.verification/1" and doc["kind"] == scene.kind
+        for name, v in doc["values"].items():
+            # the error is explained by U (k = 2): the verdict is PASS on every value
+            assert abs(v["error"]) <= v["U"], (spec, name, v)
+            assert 0 < v["U"] < 0.02, (spec, name, v)  # a few µm, not a placeholder
+        assert rc == 0 and "PASS" in out
+    # a wrong nominal fails with exit status 3, and says by how much
+    res = str(tmp_path / "wrong.json")
+    rc, out, _ = _run(
+        ["verify", cal_path, str(tmp_path / "steps.json"), "--artefact", "steps:1.0,1.5,2.1",
+         "--observations", obs_path, "--out", res],
+        capsys,
+    )  # fmt: skip
+    assert rc == 3 and "FAIL" in out
+    with open(res) as fh:
+        v = json.load(fh)["values"]["step_3"]
+    assert not v["passed"] and abs(v["error"] + 0.1) < 0.01

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..reconstruct._reconstruct import intersect_ray_plane
+from ._model import CalibrationData
 from ._solve import split
 
 __all__ = ["AxisConditioning", "axis_conditioning", "axis_warning"]
@@ -228,7 +229,8 @@ def calibration_axis_conditioning(cal) -> AxisConditioning | None:
     if not (W and H):
         return None
     fi = gw = None
-    if data is not None and np.asarray(data.gauge_w).size:
+    # not CalibrationData: a file read without its observations (no frame counts then)
+    if isinstance(data, CalibrationData) and np.asarray(data.gauge_w).size:
         fi, gw = np.asarray(data.frame_index), np.asarray(data.gauge_w)
     return axis_conditioning(
         fit.params, fit.free_mask, cov, reference_pixels(W, H), frame_index=fi, gauge_weights=gw
