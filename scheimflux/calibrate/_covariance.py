@@ -354,7 +354,11 @@ def diagnostics(
             "freeze one of these parameters"
         )
     warnings.extend(correlation_warnings(labels, corr))
-    if isinstance(cal, Calibration) and getattr(params, "stage", None) is not None:
+    if (
+        isinstance(cal, Calibration)
+        and fn is not camera_residuals
+        and getattr(params, "stage", None) is not None
+    ):
         from ._stage_warning import axis_conditioning, axis_warning, reference_pixels
 
         if all(cal.sensor_size):
