@@ -354,6 +354,19 @@ def diagnostics(
             "freeze one of these parameters"
         )
     warnings.extend(correlation_warnings(labels, corr))
+    if (
+        isinstance(cal, Calibration)
+        and fn is not camera_residuals
+        and getattr(params, "stage", None) is not None
+    ):
+        from ._stage_warning import axis_conditioning, axis_warning, reference_pixels
+
+        if all(cal.sensor_size):
+            note = axis_warning(
+                axis_conditioning(params, spec, cov, reference_pixels(*cal.sensor_size))
+            )
+            if note is not None:
+                warnings.append(note)
     cond = float(smax / s[-1]) if s.size and s[-1] > 0 else math.inf
     return Diagnostics(
         block="joint" if fn is not camera_residuals else "camera",

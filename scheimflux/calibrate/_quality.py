@@ -20,6 +20,7 @@ from ._gates import (
 )
 from ._rejection import _block_residuals
 from ._result import Calibration
+from ._stage_warning import axis_warning, calibration_axis_conditioning
 
 
 def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:
@@ -98,6 +99,9 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 "axis (wrong gauge radius, or Δω)",
             )
         )
+    note = axis_warning(calibration_axis_conditioning(cal))
+    if note is not None:
+        warnings.append(note)
     cam = params.camera
     if isinstance(cam, ThickLensScheimpflug):
         gates.append(axis_point_gate(float(cam.x0), float(cam.y0), W, H))

@@ -8,6 +8,7 @@ parameters, the warnings, the quality gates and the left-out observations, and
 
 from __future__ import annotations
 
+from ._stage_warning import calibration_axis_conditioning
 from ._uncertainty import fit_diagnostics
 
 __all__ = ["calibration_summary", "format_summary", "format_trust", "trust_entries"]
@@ -139,6 +140,9 @@ def trust_entries(cal) -> dict:
     quality = getattr(cal, "quality", None)
     if quality is not None:
         out["quality"] = quality.to_dict()
+    axis = calibration_axis_conditioning(cal)
+    if axis is not None:
+        out["stage_axis"] = axis.to_dict()
     return out
 
 
@@ -167,4 +171,12 @@ def format_trust(cal) -> str:
                 f"sigma of the normal {w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
                 f"{p['offset_sigma_mm'] * 1e3:.3g} um"
             )
+    axis = calibration_axis_conditioning(cal)
+    if axis is not None:
+        parts.append(
+            f"table axis: predicted sigma of a length across half a turn "
+            f"{axis.sigma_across_um:.3g} um; of the direction {axis.sigma_direction_mrad:.3g} "
+            f"mrad, of the position {axis.sigma_position_um:.3g} um"
+            + (" (WEAK: see the warning)" if axis.weak else "")
+        )
     return "\n".join(parts)

@@ -27,6 +27,7 @@ _SUBCOMMANDS = (
     "_calibrate",
     "_reconstruct",
     "_measure",
+    "_verify",
     "_report",
     "_export",
 )
