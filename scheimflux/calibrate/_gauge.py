@@ -13,11 +13,14 @@ point, and with it the tilt, to the data. The tilt is then no longer a gauge, an
 it at a rounded nominal value biases what is measured (a 1° error moved noise-free
 pairwise distances by 0.05 µm on a 50 mm double Gauss at ×0.5, 1600 × 1200 px; the
 issue's 75 mm telephoto: 0.19 µm). The singular values of the column-scaled Jacobian
-with only the pixel pitch frozen show one null direction, along (f, z0, e), and nothing
-else near it (docs/noncentral.md lists them). So the solve with distortion holds only
-`f` (and the pitch): the exact gauge. The ideal-camera solve before it keeps the full
-ideal gauge, which is needed there (two null directions) and harmless (its result is
-only the start of the distortion solve).
+with only the pixel pitch frozen show one null direction, along (f, z0, e) (exact: any f
+gives the same rays), and next to it the axis point against the boards' translations
+(eigenvalues of the scaled JᵀJ 2e-13 – 1e-12: determined only through the distortion's
+centre, at the limit of what the rank check accepts); the tilt has no part in either
+(docs/noncentral.md lists them). So the solve with distortion holds the pitch, `f` and
+the axis point at the sensor centre, and frees the tilt, which the data determine. The
+ideal-camera solve before it keeps the ideal gauge, which it needs (two null
+directions) and which is harmless there (its result is only the start).
 
 `gauge_spectrum` computes these singular values and directions for any solve.
 """
@@ -26,6 +29,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from ._solve import RankDeficientError, free_spec, jacobian, parameter_labels
@@ -36,10 +41,11 @@ IDEAL_GAUGE = {
     "nominal": ("camera.f", "camera.phi", "camera.theta"),
     "closed-form": ("camera.f", "camera.x0", "camera.y0"),
 }
-#: The exact gauge once distortion is fitted: the scale along (f, e, z0).
-DISTORTED_GAUGE = ("camera.f",)
-# What the ideal gauge holds beyond the distorted one (released for the distortion solve).
-_RELEASED = ("camera.phi", "camera.theta", "camera.x0", "camera.y0")
+#: The gauge once distortion is fitted: the scale along (f, e, z0) (exact) and the axis
+#: point at the sensor centre (the weakest determined direction, see the module doc).
+DISTORTED_GAUGE = ("camera.f", "camera.x0", "camera.y0")
+_TILT = ("camera.phi", "camera.theta")
+_AXIS = ("camera.x0", "camera.y0")
 
 
 def ideal_freeze(how: str) -> tuple[str, ...]:
@@ -49,8 +55,16 @@ def ideal_freeze(how: str) -> tuple[str, ...]:
 
 def distorted_freeze(freeze: tuple[str, ...]) -> tuple[str, ...]:
     """The default frozen set for the solve with distortion: `freeze` without the tilt
-    and axis point (which distortion makes observable), i.e. pixel pitch and f."""
-    return tuple(p for p in freeze if p not in _RELEASED)
+    (which distortion makes observable) and with the axis point held instead."""
+    kept = tuple(p for p in freeze if p not in _TILT)
+    return kept + tuple(p for p in _AXIS if p not in kept)
+
+
+def axis_at_sensor_centre(camera, width: int, height: int):
+    """`camera` with its axis point moved to the sensor centre (where the distortion
+    solve holds it); the tilt it held is then released to follow."""
+    c = jnp.asarray([(width - 1) / 2.0, (height - 1) / 2.0])
+    return eqx.tree_at(lambda m: (m.x0, m.y0), camera, (c[0], c[1]))
 
 
 @dataclasses.dataclass(frozen=True)
