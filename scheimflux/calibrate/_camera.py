@@ -17,7 +17,7 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._gauge import axis_at_sensor_centre, distorted_freeze, ideal_freeze, solve_with_gauge
+from ._gauge import distorted_freeze, ideal_freeze, solve_with_gauge
 from ._init import (
     closed_form_pinhole,
     nominal_thick_lens,
@@ -238,12 +238,8 @@ def calibrate_camera(
         )
         camera, poses = first.params.camera, first.params.board_poses
         camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
-        held_camera = camera
-        if default_gauge:  # distortion makes the tilt observable (see `_gauge`)
+        if default_gauge:  # distortion makes the tilt and axis point observable (`_gauge`)
             released = distorted_freeze(freeze)
-            camera = axis_at_sensor_centre(camera, obs.width, obs.height)
-    else:
-        held_camera = camera
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     params = SystemParams(camera, poses)
     central_first = model == "thick-lens-noncentral"
@@ -251,7 +247,7 @@ def calibrate_camera(
     def solve(fr):
         return least_squares(
             camera_residuals,
-            params if fr == released else SystemParams(held_camera, poses),
+            params,
             data,
             freeze=fr,
             max_steps=max_steps,
