@@ -17,7 +17,7 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._gauge import distorted_freeze, ideal_freeze, solve_with_gauge
+from ._gauge import ideal_freeze
 from ._init import (
     closed_form_pinhole,
     nominal_thick_lens,
@@ -56,8 +56,8 @@ def make_distortion(name: str):
 # defaults fix the pixel pitch (datasheet), f (lens datasheet) and a gauge for the
 # tilt: the nominal adapter tilt when it is known, else the axis through the sensor
 # centre. `diagnostics()` reports the singular values that show this. With distortion
-# the tilt and axis point are observable and the distortion solve releases them
-# (`_gauge.distorted_freeze`: pixel pitch and f only; see `_gauge`).
+# the tilt is no longer an exact gauge (`_gauge`, docs/noncentral.md: measured, not yet
+# solved; `freeze=("camera.dx", "camera.dy", "camera.f")` frees it).
 DEFAULT_FREEZE = {
     ("thick-lens", "nominal"): ideal_freeze("nominal"),
     ("thick-lens", "closed-form"): ideal_freeze("closed-form"),
@@ -212,7 +212,6 @@ def calibrate_camera(
             "distortion='none' or the thick-lens model"
         )
     camera, poses, how = _initial(obs, model, init)
-    default_gauge = freeze is None
     freeze = _model_freeze(model, how, freeze, opencv_flags)
     if model == "opencv":
         # the ideal pinhole first (every coefficient at zero), then the model's terms
@@ -225,7 +224,6 @@ def calibrate_camera(
             throw=False,
         )
         camera, poses = first.params.camera, first.params.board_poses
-    released = freeze
     if model in THICK_LENS_MODELS and distortion != "none":
         # the ideal camera first, then with distortion from zero
         first = least_squares(
@@ -238,23 +236,18 @@ def calibrate_camera(
         )
         camera, poses = first.params.camera, first.params.board_poses
         camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
-        if default_gauge:  # distortion makes the tilt and axis point observable (`_gauge`)
-            released = distorted_freeze(freeze)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     params = SystemParams(camera, poses)
     central_first = model == "thick-lens-noncentral"
 
-    def solve(fr):
-        return least_squares(
-            camera_residuals,
-            params,
-            data,
-            freeze=fr,
-            max_steps=max_steps,
-            throw=throw and not central_first,
-        )
-
-    fit, freeze = solve_with_gauge(solve, freeze, released)
+    fit = least_squares(
+        camera_residuals,
+        params,
+        data,
+        freeze=freeze,
+        max_steps=max_steps,
+        throw=throw and not central_first,
+    )
     if central_first:
         # the central thick lens's optimum is the start, the pupil's shift from zero
         camera = ThickLensNonCentral.from_central(fit.params.camera)
