@@ -250,4 +250,4 @@ def test_noncentral_recovers_the_ray_tracer_better_than_the_central_model():
     assert isinstance(nc.camera, ThickLensNonCentral)
     assert all(f.converged for f in nc.fits.values())
     assert nc.reprojection_rms_px < central.reprojection_rms_px
-    assert e_nc < 0.5 * e_c, (e_c, e_nc)
+    assert e_nc < 0.5 * e_c, (e_c, e_nc)  # measured: central 0.609, non-central 0.164 µm
