@@ -267,7 +267,12 @@ INVALID = [
     ("format", "scheimflux.observations/1", r"format must be 'scheimflux.calibration/1'"),
     ("format", _DELETE, r"format must be .* got None"),
     ("model", _DELETE, r"missing key model"),
-    ("model", "fisheye", r"model must be one of \['thick-lens', 'pinhole', 'opencv'\], got 'fi"),
+    (
+        "model",
+        "fisheye",
+        r"model must be one of \['thick-lens', 'thick-lens-noncentral', 'pinhole', 'opencv'\], "
+        r"got 'fi",
+    ),
     ("camera", _DELETE, r"missing key camera"),
     ("camera", [1, 2], r"camera must be a JSON object"),
     ("camera.z0", _DELETE, r"missing key camera.z0"),

@@ -11,11 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
+from ..camera._noncentral import ThickLensNonCentral
 from ..camera._opencv import OpenCVCamera
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
+from ._gauge import ideal_freeze
 from ._init import (
     closed_form_pinhole,
     nominal_thick_lens,
@@ -27,7 +29,9 @@ from ._model import CalibrationData, SystemParams, camera_residuals, corner_erro
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
 from ._solve import Fit, least_squares
 
-MODELS = ("thick-lens", "pinhole", "opencv")
+MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
+# the models built on the thick lens (nominal start, pixel pitch, distortion first)
+THICK_LENS_MODELS = ("thick-lens", "thick-lens-noncentral")
 DISTORTIONS = ("none", "radial-tangential", "division", "opencv")
 
 
@@ -51,22 +55,14 @@ def make_distortion(name: str):
 # pixel pitch is known), so the sensor tilt is not observable from geometry alone. The
 # defaults fix the pixel pitch (datasheet), f (lens datasheet) and a gauge for the
 # tilt: the nominal adapter tilt when it is known, else the axis through the sensor
-# centre. `diagnostics()` reports the singular values that show this.
+# centre. `diagnostics()` reports the singular values that show this. With distortion
+# the tilt is no longer an exact gauge (`_gauge`, docs/noncentral.md: measured, not yet
+# solved; `freeze=("camera.dx", "camera.dy", "camera.f")` frees it).
 DEFAULT_FREEZE = {
-    ("thick-lens", "nominal"): (
-        "camera.dx",
-        "camera.dy",
-        "camera.f",
-        "camera.phi",
-        "camera.theta",
-    ),
-    ("thick-lens", "closed-form"): (
-        "camera.dx",
-        "camera.dy",
-        "camera.f",
-        "camera.x0",
-        "camera.y0",
-    ),
+    ("thick-lens", "nominal"): ideal_freeze("nominal"),
+    ("thick-lens", "closed-form"): ideal_freeze("closed-form"),
+    ("thick-lens-noncentral", "nominal"): ideal_freeze("nominal"),
+    ("thick-lens-noncentral", "closed-form"): ideal_freeze("closed-form"),
     ("pinhole", "closed-form"): (),
     # OpenCV's model: the coefficients its flags leave out are added (`opencv_frozen`)
     ("opencv", "closed-form"): (),
@@ -92,7 +88,7 @@ def _check_observations(obs: Observations, *, min_views: int = 3, min_corners: i
 class CameraCalibration:
     """Camera and board poses from the checkerboard corners."""
 
-    camera: ThickLensScheimpflug | Pinhole | OpenCVCamera
+    camera: ThickLensScheimpflug | ThickLensNonCentral | Pinhole | OpenCVCamera
     poses: Pose
     fit: Fit
     reprojection_rms_px: float
@@ -133,7 +129,7 @@ def _default_distortion(model: str, distortion: str | None) -> str:
         raise ValueError("distortion='opencv' belongs to model='opencv'")
     if distortion is not None:
         return distortion
-    return "radial-tangential" if model == "thick-lens" else "none"
+    return "radial-tangential" if model in THICK_LENS_MODELS else "none"
 
 
 def _model_freeze(model: str, how: str, freeze, opencv_flags) -> tuple[str, ...]:
@@ -162,7 +158,10 @@ def calibrate_camera(
     **Arguments:**
     - `obs`: observations (corners per view, board geometry, sensor); at least 3 views,
       each with 6 or more detected corners.
-    - `model`: `"thick-lens"` (paper eq. 12), `"pinhole"` (eq. 14) or `"opencv"`
+    - `model`: `"thick-lens"` (paper eq. 12), `"thick-lens-noncentral"` (the thick
+      lens with the entrance pupil moving along the axis with the field,
+      `ThickLensNonCentral`; solved from the central optimum), `"pinhole"` (eq. 14) or
+      `"opencv"`
       (OpenCV's camera, see `opencv_flags`).
     - `distortion`: `"radial-tangential"` (k1, k2, k3, p1, p2), `"division"` or
       `"none"`, applied in the untilted image plane (thick lens only); None: the
@@ -203,7 +202,7 @@ def calibrate_camera(
         raise ValueError("init='nominal' is the thick lens's; the OpenCV model starts closed-form")
     opencv_flags = parse_opencv_flags(opencv_flags)
     _check_observations(obs)
-    if model == "thick-lens":
+    if model in THICK_LENS_MODELS:
         require_pixel_pitch(obs)
     distortion = _default_distortion(model, distortion)
     dist = make_distortion(distortion)
@@ -225,7 +224,7 @@ def calibrate_camera(
             throw=False,
         )
         camera, poses = first.params.camera, first.params.board_poses
-    if model == "thick-lens" and distortion != "none":
+    if model in THICK_LENS_MODELS and distortion != "none":
         # the ideal camera first, then with distortion from zero
         first = least_squares(
             camera_residuals,
@@ -239,9 +238,27 @@ def calibrate_camera(
         camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     params = SystemParams(camera, poses)
+    central_first = model == "thick-lens-noncentral"
+
     fit = least_squares(
-        camera_residuals, params, data, freeze=freeze, max_steps=max_steps, throw=throw
+        camera_residuals,
+        params,
+        data,
+        freeze=freeze,
+        max_steps=max_steps,
+        throw=throw and not central_first,
     )
+    if central_first:
+        # the central thick lens's optimum is the start, the pupil's shift from zero
+        camera = ThickLensNonCentral.from_central(fit.params.camera)
+        fit = least_squares(
+            camera_residuals,
+            SystemParams(camera, fit.params.board_poses),
+            data,
+            freeze=freeze,
+            max_steps=max_steps,
+            throw=throw,
+        )
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
         fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)

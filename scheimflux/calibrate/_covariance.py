@@ -44,6 +44,7 @@ _UNITS = {
     "camera.y0": "px",
     "camera.dx": "mm",
     "camera.dy": "mm",
+    "camera.pupil": "mm",
     "camera.alpha": "px",
     "camera.beta": "px",
     "camera.gamma": "px",

@@ -7,6 +7,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from ..camera._noncentral import ThickLensNonCentral
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ._gates import (
@@ -103,7 +104,7 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
     if note is not None:
         warnings.append(note)
     cam = params.camera
-    if isinstance(cam, ThickLensScheimpflug):
+    if isinstance(cam, (ThickLensScheimpflug, ThickLensNonCentral)):
         gates.append(axis_point_gate(float(cam.x0), float(cam.y0), W, H))
     elif isinstance(cam, Pinhole):
         g = axis_point_gate(float(cam.x0), float(cam.y0), W, H)

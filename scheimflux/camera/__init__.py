@@ -9,6 +9,7 @@ from ._distortion import (
     OpenCVDistortion as OpenCVDistortion,
     RadialTangential as RadialTangential,
 )
+from ._noncentral import ThickLensNonCentral as ThickLensNonCentral
 from ._opencv import OpenCVCamera as OpenCVCamera
 from ._pinhole import Pinhole as Pinhole
 from ._thick_lens import ThickLensScheimpflug as ThickLensScheimpflug

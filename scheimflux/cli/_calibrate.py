@@ -33,7 +33,7 @@ import time
 
 from ._common import CLIError, require_positive
 
-_MODELS = ("thick-lens", "pinhole", "opencv")
+_MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
 _DISTORTIONS = ("radial-tangential", "division", "none")
 _INITS = ("auto", "nominal", "closed-form")
 
@@ -48,7 +48,11 @@ def register(subparsers) -> None:
     p.add_argument("observations", metavar="OBS.json", help="observations file")
     p.add_argument("--out", required=True, metavar="CAL.json", help="calibration file to write")
     p.add_argument(
-        "--model", choices=_MODELS, default="thick-lens", help="camera model (default: %(default)s)"
+        "--model",
+        choices=_MODELS,
+        default="thick-lens",
+        help="camera model (default: %(default)s); thick-lens-noncentral adds the entrance "
+        "pupil's shift with the field (short wide lenses, docs/noncentral.md)",
     )
     p.add_argument(
         "--opencv-flags",
@@ -237,8 +241,10 @@ def run(args) -> int:
     obs = _with_nominal(args, read_observations(args.observations))
     distortion = args.distortion
     if distortion is None:
-        distortion = {"thick-lens": "radial-tangential", "opencv": "opencv"}.get(args.model, "none")
-    if args.model == "thick-lens":
+        rt = "radial-tangential"
+        defaults = {"thick-lens": rt, "thick-lens-noncentral": rt, "opencv": "opencv"}
+        distortion = defaults.get(args.model, "none")
+    if args.model.startswith("thick-lens"):
         from ..calibrate._init import require_pixel_pitch
 
         try:

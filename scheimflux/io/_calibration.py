@@ -2,7 +2,7 @@
 
 ```
 {"format": "scheimflux.calibration/1",
- "model": "thick-lens",                                   # or "pinhole", "opencv"
+ "model": "thick-lens",                # or "thick-lens-noncentral", "pinhole", "opencv"
  "sensor": {"width": 1600, "height": 1200},                # px
  "camera": {"f": {"value": 97.0, "unit": "mm"}, "e": {...}, "z0": {...},
             "phi": {"value": 2.87, "unit": "deg"}, "theta": {...},
@@ -22,7 +22,10 @@
  "software": {"name": "scheimflux", "version": "0.1.0"}}
 ```
 
-The pinhole model (paper eq. 14) has `alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
+The non-central thick lens (`"model": "thick-lens-noncentral"`) has the thick lens's
+parameters and `c1`, `c2` (mm): the entrance pupil's shift along the axis,
+`c1 ρ² + c2 ρ⁴` (see `ThickLensNonCentral`). The pinhole model (paper eq. 14) has
+`alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
 `"distortion": {"model": "none"}`. OpenCV's model (`"model": "opencv"`, equal to
 `cv2.projectPoints`) has `fx`, `fy`, `cx`, `cy` (px), `tau_x`, `tau_y` (deg: the sensor
 tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4", "k5",

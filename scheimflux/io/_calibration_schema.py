@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
+from ..camera._noncentral import ThickLensNonCentral
 from ..camera._opencv import OpenCVCamera
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
@@ -34,6 +35,20 @@ CAMERA_PARAMETERS = {
         ("dx", "mm"),
         ("dy", "mm"),
     ),
+    # the thick lens and the entrance pupil's shift along the axis, c1 ρ² + c2 ρ⁴ (mm)
+    "thick-lens-noncentral": (
+        ("f", "mm"),
+        ("e", "mm"),
+        ("z0", "mm"),
+        ("phi", "deg"),
+        ("theta", "deg"),
+        ("x0", "px"),
+        ("y0", "px"),
+        ("dx", "mm"),
+        ("dy", "mm"),
+        ("c1", "mm"),
+        ("c2", "mm"),
+    ),
     "pinhole": (("alpha", "px"), ("beta", "px"), ("gamma", "px"), ("x0", "px"), ("y0", "px")),
     "opencv": (
         ("fx", "px"),
@@ -44,7 +59,12 @@ CAMERA_PARAMETERS = {
         ("tau_y", "deg"),
     ),
 }
-_CAMERA_CLASSES = {"thick-lens": ThickLensScheimpflug, "pinhole": Pinhole, "opencv": OpenCVCamera}
+_CAMERA_CLASSES = {
+    "thick-lens": ThickLensScheimpflug,
+    "thick-lens-noncentral": ThickLensNonCentral,
+    "pinhole": Pinhole,
+    "opencv": OpenCVCamera,
+}
 DISTORTION_PARAMETERS = {
     "none": (),
     "radial-tangential": ("k1", "k2", "k3", "p1", "p2"),
@@ -60,6 +80,7 @@ _DISTORTION_CLASSES = {
 # the distortion models each camera model may hold
 _MODEL_DISTORTIONS = {
     "thick-lens": ("none", "radial-tangential", "division"),
+    "thick-lens-noncentral": ("none", "radial-tangential", "division"),
     "pinhole": ("none",),
     "opencv": ("opencv",),
 }
@@ -194,6 +215,8 @@ def _camera(doc: dict, model: str):
     if model == "pinhole":
         return Pinhole(**values), dname
     dist = _DISTORTION_CLASSES[dname](*coeffs)
+    if model == "thick-lens-noncentral":
+        values["pupil"] = (values.pop("c1"), values.pop("c2"))
     return _CAMERA_CLASSES[model](**values, distortion=dist), dname
 
 
