@@ -52,6 +52,7 @@ file whose solves did not converge (`"converged": false`) is read with an
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
 import math
 import os
@@ -256,6 +257,9 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
         doc["stage"] = stage_to_dict(params.stage, params.eccentricity)
     if params.board_poses is not None and np.shape(params.board_poses.rotvec)[0] > 0:
         doc["board_poses"] = poses_to_dict(params.board_poses)
+    coverage = getattr(cal, "coverage", None)
+    if coverage is not None:
+        doc["coverage"] = coverage.to_dict()
     fits = dict(getattr(cal, "fits", {}) or {})
     before = getattr(cal, "diagnostics", None)
     diag = dict(before) if isinstance(before, dict) else {}
@@ -326,6 +330,14 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
     if stage is not None and plane is None:
         raise CalibrationFileError("missing key laser_plane (the stage needs the laser plane)")
     poses = _poses(doc)
+    coverage = None
+    if doc.get("coverage") is not None:
+        from ..calibrate._coverage import Coverage
+
+        try:
+            coverage = Coverage.from_dict(doc["coverage"], sensor)
+        except ValueError as err:
+            raise CalibrationFileError(str(err)) from None
     diagnostics = _diagnostics(doc)
     params = SystemParams(
         camera,
@@ -334,7 +346,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         stage,
         None if ecc is None else jnp.asarray(ecc),
     )
-    return restore_calibration(
+    cal = restore_calibration(
         params=params,
         model=model,
         distortion=dname,
@@ -345,6 +357,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         observations=observations,
         source=source,
     )
+    return dataclasses.replace(cal, coverage=coverage)
 
 
 def read_calibration(path: str | os.PathLike, *, observations=None):
