@@ -15,6 +15,8 @@
  "stage": {"R_m_c": [[...], [...], [...]], "t_m_c_mm": [tx, ty, tz],     # optional
            "delta_omega_deg": 10.0, "gauge_eccentricity_mm": [ex, ey]},
  "board_poses": {"rotvec": [[rx, ry, rz], ...], "translation_mm": [[tx, ty, tz], ...]},
+ "coverage": {"format": "scheimflux.coverage/1", "cell_px": 8, "margin_px": 23.6,  # optional
+              "shape": [rows, cols], "fraction": 0.41, "bits": "<base64 packbits>"},
  "diagnostics": {"reprojection_rms_px": ..., "laser_plane_rms_mm": ..., "gauge_rms_mm": ...,
                  "solves": {"camera": {"steps": 12, "converged": true, "time_s": 3.1}, ...},
                  "frozen": ["camera.dx", ...], "converged": true,
@@ -29,6 +31,10 @@ tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4",
 "k6", "s1", "s2", "s3", "s4"}` (OpenCV's order). Distortion models of the thick lens:
 `"none"`, `"radial-tangential"` (k1, k2, k3, p1, p2) and `"division"` (kappa), all
 dimensionless (unit `"1"`), acting in the untilted image plane.
+
+`coverage` (optional; files before it load with `coverage = None`, unknown) is the
+sensor region the calibration data covered (`scheimflux.calibrate._coverage`,
+docs/coverage.md): an occupancy grid of `cell_px` cells, which must match `sensor`.
 
 `laser_plane` is absent in a camera-only calibration (no stripe pixels on the boards):
 such a file serves OpenCV export, not reconstruction. `board_poses` (`T_c_b` of each
