@@ -13,6 +13,14 @@ from scheimflux.cli._main import main
 from scheimflux.io import write_points
 
 
+def _coverage_doc():
+    from scheimflux.calibrate._coverage import coverage_of
+
+    g = np.linspace(200.0, 900.0, 6)
+    corners = np.stack(np.meshgrid(g, g - 100.0), axis=-1).reshape(-1, 2)
+    return coverage_of([corners], [np.zeros((0, 2))], (1600, 1200)).to_dict()
+
+
 def _calibration_doc():
     cam = {"f": (97.0, "mm"), "e": (-2.4, "mm"), "z0": (249.5, "mm"), "phi": (2.87, "deg"),
            "theta": (13.3, "deg"), "x0": (796.2, "px"), "y0": (594.0, "px"),
@@ -28,6 +36,7 @@ def _calibration_doc():
         | {"distortion": {"model": "none"}},
         "laser_plane": {"n_per_mm": [8.6e-4, 3.6e-4, 3.17e-3]},
         "board_poses": {"rotvec": [[0.0, 0.0, 3.1]], "translation_mm": [[0.0, 0.0, 157.0]]},
+        "coverage": _coverage_doc(),
         "diagnostics": {
             "std": {"camera.e": 0.01, "camera.z0": 0.02, "camera.x0": 0.5, "camera.y0": 0.4},
             "camera_correlation": {"labels": labels, "matrix": corr},
@@ -63,7 +72,8 @@ def test_report_html_parses_and_every_image_decodes(tmp_path, capsys):
     parser = _Images()
     parser.feed(text)
     parser.close()
-    assert parser.sections >= 5 and len(parser.src) == 2  # correlation, points
+    # correlation, coverage, points (residual and model-error maps need observations)
+    assert parser.sections >= 7 and len(parser.src) == 3
     for src in parser.src:
         assert src.startswith("data:image/png;base64,")
         img = cv2.imdecode(np.frombuffer(base64.b64decode(src.split(",", 1)[1]), np.uint8),
@@ -73,6 +83,8 @@ def test_report_html_parses_and_every_image_decodes(tmp_path, capsys):
         assert cv2.imread(str(pngs / name)) is not None
     assert "camera.e and camera.z0" in text and "97" in text
     assert "Residual maps need the observations" in text
+    assert "The model-error map needs the observations" in text
+    assert "of the sensor" in text
     # never overwritten without --overwrite
     assert main(["report", str(cal), "--out", out]) == 1
     assert "--overwrite" in capsys.readouterr().err

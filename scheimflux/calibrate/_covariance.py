@@ -140,6 +140,8 @@ class Diagnostics:
     - `warnings`: human-readable strings (non-identifiable directions, camera
       parameter pairs correlated beyond |ρ| > 0.99).
     - `frozen`: the parameter paths held fixed.
+    - `coverage`: fraction of the sensor covered by the calibration data
+      (`Calibration.coverage`), None when unknown.
     """
 
     block: str
@@ -156,6 +158,7 @@ class Diagnostics:
     null_directions: list
     warnings: list[str]
     frozen: tuple = ()
+    coverage: float | None = None
 
     def index(self, label: str) -> int:
         """Position of a parameter label (e.g. `"camera.z0"`, `"plane.n[2]"`)."""
@@ -197,6 +200,8 @@ class Diagnostics:
             lines.append(", ".join(parts))
         if self.frozen:
             lines.append("  fixed: " + ", ".join(self.frozen))
+        cov = "unknown" if self.coverage is None else f"{100 * self.coverage:.0f} %"
+        lines.append(f"  sensor covered by calibration data: {cov}")
         if self.warnings:
             lines.append("")
             lines.extend(f"  warning: {w}" for w in self.warnings)
@@ -219,6 +224,7 @@ class Diagnostics:
                 "matrix": [[_num(v) for v in row] for row in self.correlation[np.ix_(cam, cam)]],
             },
             "singular_values": [_num(v) for v in self.singular_values],
+            "coverage_fraction": None if self.coverage is None else _num(self.coverage),
             "warnings": list(self.warnings),
         }
 
@@ -384,4 +390,5 @@ def diagnostics(
         null_directions=nulls,
         warnings=warnings,
         frozen=frozen,
+        coverage=getattr(getattr(cal, "coverage", None), "fraction", None),
     )

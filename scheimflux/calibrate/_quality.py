@@ -10,6 +10,7 @@ import numpy as np
 from ..camera._noncentral import ThickLensNonCentral
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
+from ._coverage import coverage_from_data
 from ._gates import (
     Quality,
     QualityError,
@@ -25,9 +26,11 @@ from ._stage_warning import axis_warning, calibration_axis_conditioning
 
 
 def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:
-    """`cal` with its quality gates assessed; `QualityError` (with `throw`) if one fails."""
+    """`cal` with its quality gates assessed and its coverage of the sensor recorded;
+    `QualityError` (with `throw`) if a gate fails."""
     quality = assess_quality(cal, rejected, conditioning)
-    cal = dataclasses.replace(cal, quality=quality)
+    coverage = coverage_from_data(cal.data, cal.sensor_size)
+    cal = dataclasses.replace(cal, quality=quality, coverage=coverage)
     if throw and not quality.passed:
         raise QualityError(
             "calibration failed its quality gates: "

@@ -6,6 +6,7 @@ import dataclasses
 
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
+from ._coverage import Coverage
 from ._gates import Quality
 from ._model import CalibrationData, SystemParams
 
@@ -24,6 +25,8 @@ class Calibration:
       `gauge_rms_mm` (None without a stage scan).
     - `data`: the arrays the residuals were computed from.
     - `sensor_size`: `(width, height)` in px.
+    - `coverage`: the sensor region the calibration data covered (`Coverage`), None
+      when unknown (no sensor size, or a file written before coverage was recorded).
 
     A camera-only calibration (no stripe pixels on the boards) has `plane = None`
     (`camera_only` is True): it serves OpenCV export and camera studies, not
@@ -46,6 +49,7 @@ class Calibration:
     # observations left out by the rejection pass: index arrays (view, corner),
     # (view, stripe point), (frame, gauge point) into the screened observations
     left_out: dict | None = None
+    coverage: Coverage | None = None  # sensor region covered by calibration data
 
     @property
     def camera_only(self) -> bool:

@@ -159,6 +159,12 @@ def format_trust(cal) -> str:
     diag = _uncertainty(cal)
     if diag is not None:
         parts.append(diag.summary())
+    cov = getattr(cal, "coverage", None)
+    parts.append(
+        "coverage: unknown (no sensor size or an older calibration file)"
+        if cov is None
+        else f"coverage: {cov.summary()}; points outside it are extrapolated"
+    )
     quality = getattr(cal, "quality", None)
     if quality is not None:
         parts.append(quality.summary())

@@ -50,6 +50,12 @@ def register(subparsers) -> None:
     )
     p.add_argument("--labels", metavar="LABELS", help="face per point (.json or .npy), steps")
     p.add_argument("--sigma-px", type=float, metavar="PX", help="stripe noise, px")
+    p.add_argument(
+        "--frozen-sigma", default="nominal", metavar="nominal|none|PATH=SIGMA,...",
+        help="standard uncertainty of the parameters the calibration held fixed (mm, rad), "
+        "e.g. camera.f=0.3,camera.phi=0.002; nominal: the rounding of the nominal f (1 mm) "
+        "and tilt (1 deg); none: held parameters count as exact (default: %(default)s)",
+    )
     p.add_argument("--out", metavar="RESULT.json", help="write the result as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.set_defaults(func=run)
@@ -60,6 +66,22 @@ def _kind(args) -> str:
         if getattr(args, k):
             return k
     return "steps" if args.steps is not None else "distance"
+
+
+def _frozen_sigma(text: str):
+    """`--frozen-sigma`: "nominal", "none" or PATH=SIGMA pairs."""
+    if text in ("nominal", "none"):
+        return None if text == "none" else "nominal"
+    out = {}
+    for item in text.split(","):
+        path, eq, value = item.partition("=")
+        try:
+            out[path.strip()] = float(value)
+        except ValueError:
+            raise CLIError(f"--frozen-sigma: {item!r} is not PATH=SIGMA") from None
+        if not eq or not path.strip():
+            raise CLIError(f"--frozen-sigma: {item!r} is not PATH=SIGMA")
+    return out
 
 
 def run(args) -> int:
@@ -82,6 +104,7 @@ def run(args) -> int:
         n_faces=args.steps or 2,
         distance=tuple(args.distance) if args.distance else (0, 1),
         sigma_px=args.sigma_px,
+        frozen_sigma=_frozen_sigma(args.frozen_sigma),
     )
     print(m.summary())
     if out:

@@ -15,6 +15,8 @@
  "stage": {"R_m_c": [[...], [...], [...]], "t_m_c_mm": [tx, ty, tz],     # optional
            "delta_omega_deg": 10.0, "gauge_eccentricity_mm": [ex, ey]},
  "board_poses": {"rotvec": [[rx, ry, rz], ...], "translation_mm": [[tx, ty, tz], ...]},
+ "coverage": {"format": "scheimflux.coverage/1", "cell_px": 8, "margin_px": 23.6,  # optional
+              "shape": [rows, cols], "fraction": 0.41, "bits": "<base64 packbits>"},
  "diagnostics": {"reprojection_rms_px": ..., "laser_plane_rms_mm": ..., "gauge_rms_mm": ...,
                  "solves": {"camera": {"steps": 12, "converged": true, "time_s": 3.1}, ...},
                  "frozen": ["camera.dx", ...], "converged": true,
@@ -32,6 +34,10 @@ tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4",
 "k6", "s1", "s2", "s3", "s4"}` (OpenCV's order). Distortion models of the thick lens:
 `"none"`, `"radial-tangential"` (k1, k2, k3, p1, p2) and `"division"` (kappa), all
 dimensionless (unit `"1"`), acting in the untilted image plane.
+
+`coverage` (optional; files before it load with `coverage = None`, unknown) is the
+sensor region the calibration data covered (`scheimflux.calibrate._coverage`,
+docs/coverage.md): an occupancy grid of `cell_px` cells, which must match `sensor`.
 
 `laser_plane` is absent in a camera-only calibration (no stripe pixels on the boards):
 such a file serves OpenCV export, not reconstruction. `board_poses` (`T_c_b` of each
@@ -55,6 +61,7 @@ file whose solves did not converge (`"converged": false`) is read with an
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
 import math
 import os
@@ -259,6 +266,9 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
         doc["stage"] = stage_to_dict(params.stage, params.eccentricity)
     if params.board_poses is not None and np.shape(params.board_poses.rotvec)[0] > 0:
         doc["board_poses"] = poses_to_dict(params.board_poses)
+    coverage = getattr(cal, "coverage", None)
+    if coverage is not None:
+        doc["coverage"] = coverage.to_dict()
     fits = dict(getattr(cal, "fits", {}) or {})
     before = getattr(cal, "diagnostics", None)
     diag = dict(before) if isinstance(before, dict) else {}
@@ -329,6 +339,14 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
     if stage is not None and plane is None:
         raise CalibrationFileError("missing key laser_plane (the stage needs the laser plane)")
     poses = _poses(doc)
+    coverage = None
+    if doc.get("coverage") is not None:
+        from ..calibrate._coverage import Coverage
+
+        try:
+            coverage = Coverage.from_dict(doc["coverage"], sensor)
+        except ValueError as err:
+            raise CalibrationFileError(str(err)) from None
     diagnostics = _diagnostics(doc)
     params = SystemParams(
         camera,
@@ -337,7 +355,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         stage,
         None if ecc is None else jnp.asarray(ecc),
     )
-    return restore_calibration(
+    cal = restore_calibration(
         params=params,
         model=model,
         distortion=dname,
@@ -348,6 +366,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         observations=observations,
         source=source,
     )
+    return dataclasses.replace(cal, coverage=coverage)
 
 
 def read_calibration(path: str | os.PathLike, *, observations=None):

@@ -110,6 +110,7 @@ _TOP_KEYS = (
     "laser_plane",
     "stage",
     "board_poses",
+    "coverage",
     "diagnostics",
     "software",
 )

@@ -47,7 +47,7 @@ COVERAGE_FACTOR = 2.0
 # Relative eigenvalue of the fit's scaled JᵀJ below which the geometry is degenerate (the
 # implicit derivative and the fit's covariance do not exist).
 FIT_RANK_RTOL = 1e-12
-SOURCES = ("calibration", "stripe_noise", "fit_residual")
+SOURCES = ("calibration", "frozen_parameters", "stripe_noise", "fit_residual")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +104,7 @@ class Measurement:
             for src in SOURCES:
                 b = self.budget.get(src)
                 text = "not included" if b is None else f"u = {b[k] * 1e3:.3f} µm"
-                lines.append(f"    {src.replace('_', ' '):<14} {text}")
+                lines.append(f"    {src.replace('_', ' '):<17} {text}")
         st = self.residual_stats
         if self.n_params:
             lines.append(

@@ -109,6 +109,7 @@ def measure_stripes(
     labels=None,
     sigma_px: float | None = None,
     diag=None,
+    frozen_sigma: dict | str | None = "nominal",
     source: str = "the calibration",
 ) -> Measurement:
     """Measure a shape from stripe pixels with the full GUM budget.
@@ -130,6 +131,10 @@ def measure_stripes(
     - `sigma_px`: the stripe centres' noise (px per coordinate); None: not evaluated (the
       fit residual term then carries it).
     - `diag`: precomputed `diagnostics(cal, block="joint")`.
+    - `frozen_sigma`: standard uncertainty (mm, rad, px) of parameters the calibration
+      held fixed, `{"camera.f": 0.3, ...}`, propagated with the calibration re-solved to
+      first order (`_frozen.py`); `"nominal"` (default): `nominal_tolerances(cal)`, the
+      rounding of the nominal f (1 mm) and tilt (1°); None: not evaluated.
 
     **Returns:** a [`Measurement`][] with `sensitivity` (∂values/∂θ). **Raises:**
     `ValueError` (one line) for a calibration without laser plane, stage or covariance,
@@ -178,6 +183,38 @@ def measure_stripes(
     S = diag.covariance[np.ix_(idx, idx)]
     terms = {"calibration": G_theta @ S @ G_theta.T}
     notes = []
+    held = [p for p in tuple(cal.freeze) if p.split(".")[0] in ("camera", "plane", "stage")]
+    if isinstance(frozen_sigma, str):
+        if frozen_sigma != "nominal":
+            raise ValueError(
+                f"frozen_sigma must be a dict, 'nominal' or None, got {frozen_sigma!r}"
+            )
+        from ._frozen import nominal_tolerances
+
+        frozen_sigma = nominal_tolerances(cal)
+    if frozen_sigma is None:
+        notes.append(f"held parameters ({', '.join(held) or 'none'}) count as exact "
+                     "(frozen_sigma not given)")
+    else:
+        from ._frozen import frozen_derivatives
+
+        sig = {p: float(s) for p, s in frozen_sigma.items()}
+        bad = [p for p, s in sig.items() if not (math.isfinite(s) and s >= 0)]
+        if bad:
+            raise ValueError(f"frozen_sigma[{bad[0]!r}] must be a number >= 0")
+        paths = [p for p, s in sig.items() if s > 0]
+        if paths:
+            D = frozen_derivatives(cal, shape, uv, fi, lab, frame, paths, source)
+            Ds = D * np.array([sig[p] for p in paths])[None, :]
+            terms["frozen_parameters"] = Ds @ Ds.T
+        else:
+            terms["frozen_parameters"] = np.zeros((len(shape.names),) * 2)
+        exact = [p for p in held if sig.get(p, 0.0) == 0.0]
+        notes.append(
+            "held parameters: "
+            + ", ".join(f"{p} σ {sig[p]:.3g}" for p in paths)
+            + (f"; counted exact: {', '.join(exact)}" if exact else "")
+        )
     s2_px = 0.0
     if sigma_px is not None:
         terms["stripe_noise"] = sigma_px**2 * np.einsum("kni,lni->kl", G_uv, G_uv)
@@ -190,6 +227,16 @@ def measure_stripes(
     terms["fit_residual"] = C_fit
     if n - int(keep.sum()):
         notes.append(f"{n - int(keep.sum())} of {n} pixels gave no point and were left out")
+    cov = getattr(cal, "coverage", None)
+    if cov is None:
+        notes.append("coverage of the sensor by calibration data unknown")
+    else:
+        n_out = int(np.sum(~np.asarray(cov.contains(uv))))
+        if n_out:
+            notes.append(
+                f"{n_out} of {len(uv)} pixels lie outside the calibration's coverage: the "
+                "model extrapolates there, and its error is not in the budget"
+            )
     notes.append(
         f"calibration: covariance of {len(idx)} {'/'.join(p.rstrip('.') for p in prefixes)} "
         f"parameters ({diag.block} solve, variance factor {diag.variance_factor:.3g})"

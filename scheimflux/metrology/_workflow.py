@@ -114,6 +114,7 @@ def measure_files(
     n_faces: int = 2,
     distance=(0, 1),
     sigma_px: float | None = None,
+    frozen_sigma="nominal",
 ) -> Measurement:
     """Measure `kind` from a points file, or from a calibration and a stripes file.
 
@@ -128,6 +129,7 @@ def measure_files(
       by [`label_steps`][] with `n_faces`.
     - `distance`: the two point indices for `kind="distance"`.
     - `sigma_px`: stripe noise (px) for the stripe-noise term (stripes only).
+    - `frozen_sigma`: σ of the held parameters (stripes only; see `measure_stripes`).
 
     **Returns:** a [`Measurement`][]. **Raises:** `ValueError` / `FileNotFoundError` with
     a one-line reason.
@@ -162,7 +164,7 @@ def measure_files(
         raise ValueError(f"--sigma-px must be >= 0, got {sigma_px}")
     return _measure_stripes_files(
         kind, calibration, stripes, observations, frame or "camera", labels, n_faces,
-        distance, sigma_px,
+        distance, sigma_px, frozen_sigma,
     )
 
 
@@ -175,7 +177,7 @@ def _labels_for(kind, X, labels, n_faces):
 
 
 def _measure_stripes_files(kind, cal_path, stripes_path, obs_path, frame, labels, n_faces,
-                           distance, sigma_px):
+                           distance, sigma_px, frozen_sigma="nominal"):
     from ..io import read_calibration, read_observations
     from ..io._stripes import read_stripes
     from ..reconstruct import stripe_to_camera, stripe_to_measurement
@@ -218,4 +220,5 @@ def _measure_stripes_files(kind, cal_path, stripes_path, obs_path, frame, labels
     return measure_stripes(
         cal, uv[ok], shape, frame=frame, frame_index=fi[ok],
         labels=None if lab is None else lab[ok], sigma_px=sigma_px, source=cal_path,
+        frozen_sigma=frozen_sigma,
     )

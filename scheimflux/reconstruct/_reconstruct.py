@@ -41,10 +41,15 @@ class Reconstruction(eqx.Module):
     **Fields:**
     - `points`: shape `(*batch, 3)`, mm; NaN where `valid` is False.
     - `status`: shape `(*batch,)`, int8 codes of `Status` (0 = valid).
+    - `in_coverage`: shape `(*batch,)`, True where the pixel lies in the sensor region
+      covered by calibration data (`calibrate.Coverage`); None when no coverage was
+      given. A valid point outside it is kept: the model extrapolates there (errors
+      several times larger, docs/coverage.md).
     """
 
     points: Float[Array, "*batch 3"]
     status: Int8[Array, "*batch"]
+    in_coverage: Bool[Array, "*batch"] | None = None
 
     @property
     def valid(self) -> Bool[Array, "*batch"]:
@@ -166,6 +171,7 @@ def stripe_to_camera(
     uv: ArrayLike,
     *,
     sensor_size: tuple[int, int] | None = None,
+    coverage=None,
 ) -> Reconstruction:
     """Reconstruct laser-stripe pixels as 3-D points in the camera frame (paper eq. 3).
 
@@ -181,6 +187,8 @@ def stripe_to_camera(
       in the dtype of `uv`.
     - `sensor_size`: optional `(width, height)` of the sensor in pixels; pixels outside
       `[-0.5, width - 0.5] × [-0.5, height - 0.5]` get `Status.OUTSIDE_SENSOR`.
+    - `coverage`: optional `calibrate.Coverage` (`cal.coverage`): fills `in_coverage`
+      (the points and their status are the same with or without it).
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
@@ -190,9 +198,19 @@ def stripe_to_camera(
     uv = as_points(uv, 2, "uv")
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
-        return Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
-    camera, plane = _cast_floats((camera, plane), uv.dtype)
-    return reference_stripe_to_camera(camera, plane, uv, sensor)
+        rec = Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
+    else:
+        camera, plane = _cast_floats((camera, plane), uv.dtype)
+        rec = reference_stripe_to_camera(camera, plane, uv, sensor)
+    return _with_coverage(rec, coverage, uv)
+
+
+def _with_coverage(rec: Reconstruction, coverage, uv) -> Reconstruction:
+    """`rec` with `in_coverage` from a `Coverage` lookup of the pixels (outside the
+    fused kernel, which stays as it is)."""
+    if coverage is None:
+        return rec
+    return Reconstruction(rec.points, rec.status, coverage.contains(uv))
 
 
 @eqx.filter_jit
@@ -214,6 +232,7 @@ def stripe_to_measurement(
     frame_index: ArrayLike,
     *,
     sensor_size: tuple[int, int] | None = None,
+    coverage=None,
 ) -> Reconstruction:
     """Reconstruct stripe pixels in the measurement (rotary-table) frame (paper eq. 13).
 
@@ -228,7 +247,7 @@ def stripe_to_measurement(
       `(frames, points, 2)` pixels. An index with fewer axes than the batch is refused
       rather than guessed: `(frames,)` against `(frames, points)` would be read along the
       points by NumPy's rules when `frames == points`.
-    - `sensor_size`: as in `stripe_to_camera`.
+    - `sensor_size`, `coverage`: as in `stripe_to_camera`.
 
     **Returns:** a `Reconstruction` in the measurement frame.
     """
@@ -254,9 +273,9 @@ def stripe_to_measurement(
     if has_fast_path(camera):
         # Unbroadcast: the kernel takes cos/sin once per frame, then broadcasts.
         fi = jnp.asarray(fi)
-        return Reconstruction(
-            *fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
-        )
+        rec = Reconstruction(*fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor))
+        return _with_coverage(rec, coverage, uv)
     camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
     fi = jnp.broadcast_to(jnp.asarray(fi), batch)
-    return reference_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
+    rec = reference_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
+    return _with_coverage(rec, coverage, uv)
