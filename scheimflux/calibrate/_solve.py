@@ -271,12 +271,13 @@ def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mas
 
 @eqx.filter_jit
 def _normal_at(x, args, structure: BlockStructure, z):
-    """Residual, block normal matrix, and the exact `Jᵀ(J z)` to check it against."""
-    f = lambda v: _unscaled(v, args)  # noqa: E731
-    r, pullback = jax.vjp(f, x)
-    B = structure.compressed(lambda t: jax.jvp(f, (x,), (t,))[1], x.dtype)
-    Jz = jax.jvp(f, (x,), (z,))[1]
-    return r, structure.normal_matrix(B), pullback(Jz)[0]
+    """Residual, block normal matrix, and `J z` twice to check the structure against:
+    from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
+    no reverse pass, which would double the program)."""
+    r, jvp = jax.linearize(lambda v: _unscaled(v, args), x)
+    JT = jax.vmap(jvp, out_axes=1)(jnp.concatenate([z[None], structure.seeds(x.dtype)]))
+    B = JT[:, 1:]
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
 
 
 @eqx.filter_jit
@@ -287,18 +288,19 @@ def _normal_detect(x, args, global_cols, local_cols, probes, z):
     ([`row_probes`][]), the check vector `z` and the compressed Jacobian (its seeds
     depend on the columns only), so a solve's start and end are one compiled program.
 
-    **Returns:** `(r, JᵀJ, Jᵀ(J z), row blocks, ok)`; `ok` False when some row mixes
-    blocks (then the normal matrix is not valid and the caller goes dense).
+    **Returns:** `(r, JᵀJ, J z from the structure, J z, row blocks, ok)`; `ok` False
+    when some row mixes blocks (then the normal matrix is not valid and the caller goes
+    dense).
     """
-    f = lambda v: _unscaled(v, args)  # noqa: E731
     V = local_cols.shape[0]
     seeds = BlockStructure(global_cols, local_cols, jnp.zeros((1,), jnp.int32), V).seeds(x.dtype)
     tangents = jnp.concatenate([probes.astype(x.dtype), z[None], seeds])
-    r, pullback = jax.vjp(f, x)
-    JT = jax.vmap(lambda t: jax.jvp(f, (x,), (t,))[1], out_axes=1)(tangents)
+    r, jvp = jax.linearize(lambda v: _unscaled(v, args), x)
+    JT = jax.vmap(jvp, out_axes=1)(tangents)
     rows, ok = rows_from_probes(JT[:, 0], JT[:, 1], V)
     structure = BlockStructure(global_cols, local_cols, rows, V)
-    return r, structure.normal_matrix(JT[:, 3:]), pullback(JT[:, 2])[0], rows, ok
+    B = JT[:, 3:]
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 2], rows, ok
 
 
 def _dense(n: int, n_rows: int) -> BlockStructure:
@@ -312,9 +314,9 @@ def _dense(n: int, n_rows: int) -> BlockStructure:
 
 
 def _normal_equations(x, args, layout, z):
-    """`(structure, r, JᵀJ, Jᵀ(J z))` at `x`: block structure where the rows split by
-    block (`layout` = `(global_cols, local_cols)`, or a `BlockStructure` to reuse), dense
-    normal equations otherwise."""
+    """`(structure, r, JᵀJ, J z from the structure, J z)` at `x`: block structure where
+    the rows split by block (`layout` = `(global_cols, local_cols)`, or a
+    `BlockStructure` to reuse), dense normal equations otherwise."""
     if isinstance(layout, BlockStructure):
         return (layout, *_normal_at(x, args, layout, z))
     global_cols, local_cols = layout
@@ -322,9 +324,9 @@ def _normal_equations(x, args, layout, z):
     if local_cols.shape[1]:
         gc, lc = jnp.asarray(global_cols, jnp.int32), jnp.asarray(local_cols, jnp.int32)
         probes = jnp.asarray(row_probes(local_cols, n), x.dtype)
-        r, H, JtJz, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
+        r, H, Bz, Jz, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
         if bool(ok):
-            return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, JtJz
+            return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, Bz, Jz
     n_rows = eqx.filter_eval_shape(_unscaled, x, args).shape[0]
     structure = _dense(n, n_rows)
     return (structure, *_normal_at(x, args, structure, z))
@@ -391,14 +393,17 @@ def least_squares(
     args0 = (fn, unravel, static, data)
     layout = block_layout(unravel, blocks)
     z = jnp.asarray(np.random.default_rng(1).standard_normal(x0.shape), x0.dtype)
-    structure, r0, H, JtJz = _normal_equations(x0, args0, layout, z)
+    structure, r0, H, Bz, Jz = _normal_equations(x0, args0, layout, z)
     if not bool(jnp.all(jnp.isfinite(H))):
         raise ValueError("the Jacobian is not finite at the initial parameters")
     if not bool(jnp.all(jnp.isfinite(r0))):
         bad = int(jnp.sum(~jnp.isfinite(r0)))
         raise ValueError(f"{bad} residuals are not finite at the initial parameters")
-    if not np.allclose(H @ z, JtJz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(JtJz)))):
-        raise RuntimeError("internal error: the block normal matrix does not match JᵀJ")
+    # the compressed Jacobian and the rows' blocks (from which JᵀJ is assembled) must
+    # rebuild J z for a random z exactly (to rounding): a row given to the wrong block
+    # would not
+    if not np.allclose(Bz, Jz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(Jz)))):
+        raise RuntimeError("internal error: the block Jacobian does not match J")
     col = jnp.sqrt(jnp.diag(H))
     scale = jnp.where(col > 0, 1.0 / jnp.where(col > 0, col, 1.0), 1.0)
     free, spec_free = np.ones(x0.shape, bool), spec
@@ -422,7 +427,7 @@ def least_squares(
     end = _normal_equations(x_end, args0, layout if structure.n_blocks else structure, z)
     if end[0].n_blocks != structure.n_blocks:
         end = _normal_equations(x_end, args0, structure, z)
-    _, r, H_end, _ = end
+    _, r, H_end, _, _ = end
     H_end = np.asarray(H_end)[np.ix_(free, free)]
     if check_rank:
         # judged at the solution: a degeneracy only at the start (a sensor tilt or the
