@@ -1,6 +1,7 @@
 """Calibration benchmark on ray-traced data: accuracy vs the noise floor, and speed vs OpenCV.
 
     python benchmarks/calibrate.py [--views 15] [--seed 0] [--quick]
+    python benchmarks/calibrate.py --cold-start [--views 15]
 
 Simulates the paper's ×1.5 Scheimpflug rig (`paper_rig()`: a real double-Gauss lens,
 1600 × 1200 px, 4.4 µm), 11 × 8 boards of 0.3 mm squares, 0.03 px corner noise and
@@ -10,13 +11,26 @@ the paper's sequential procedure, and with `cv2.calibrateCamera` (plain and tilt
 the same corners. A second scan — a bearing ring (r = 18.646 mm), never used for
 calibration — is reconstructed with each calibration and its radius fitted about the
 calibrated table axis. `--quick` uses 8 views, 12 gauge frames and fewer timing runs.
+
+`--cold-start` measures what a user waits for instead:
+the demo's observations (`scheimflux simulate`), `scheimflux calibrate` as a whole
+process with an empty and with a warm compilation cache, the compiled calibration in
+one process, and per compiled program the time spent tracing, lowering to MLIR and in
+XLA's compiler — beside OpenCV's `calibrateCamera(CALIB_TILTED_MODEL)` on the same
+corners, in the same run.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
+import json
 import math
+import os
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
@@ -102,6 +116,176 @@ def _timed_camera(obs, repeats):
     return cam, first, sorted(times)[len(times) // 2]
 
 
+# ----------------------------------------------------------------- cold start
+
+_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "xla",
+}
+
+
+def _profile(path: str) -> None:
+    """(Run in a fresh process with the cache off.) Per compiled program: seconds of
+    tracing, lowering to MLIR and XLA compilation during a first `calibrate`, from
+    JAX's monitoring events (the phases of `jit(f).lower()` and `.compile()`); then the
+    time of a second, compiled `calibrate`. Prints one JSON line."""
+    import jax
+
+    from scheimflux.io import read_observations
+
+    per = collections.defaultdict(lambda: dict(trace=0.0, lower=0.0, xla=0.0, n=0, traces=0))
+    second_traces = collections.Counter()
+    phase = ["first"]
+
+    def listen(event, duration, **kw):
+        if event not in _EVENTS:
+            return
+        name = str(kw.get("fun_name", "?"))
+        if phase[0] == "second":
+            second_traces[name] += event.endswith("jaxpr_trace_duration")
+            return
+        row = per[name]
+        row[_EVENTS[event]] += duration
+        row["n"] += event.endswith("backend_compile_duration")
+        row["traces"] += event.endswith("jaxpr_trace_duration")
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    obs = read_observations(path)
+    t0 = time.perf_counter()
+    cal = calibrate(obs)
+    first = time.perf_counter() - t0
+    phase[0] = "second"
+    t0 = time.perf_counter()
+    calibrate(obs)
+    second = time.perf_counter() - t0
+    steps = {k: f.steps for k, f in cal.fits.items()}
+    print(
+        json.dumps(
+            dict(
+                first=first,
+                second=second,
+                programs=per,
+                solve_traces=sum(r["traces"] for k, r in per.items() if "least_squares" in k),
+                second_traces=sum(second_traces.values()),
+                steps=steps,
+                rms=cal.reprojection_rms_px,
+                fit_time={k: f.time_s for k, f in cal.fits.items()},
+            )
+        )
+    )
+
+
+def _process(cmd, env, cwd=None) -> float:
+    t0 = time.perf_counter()
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=cwd)
+    dt = time.perf_counter() - t0
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed: {out.stderr.strip()[-400:]}")
+    return dt
+
+
+def _profiled(py, obs_path, env, root=None) -> dict:
+    """`_profile` in a fresh process (of the scheimflux in `root`: the baseline)."""
+    if root is not None:
+        env = {**env, "PYTHONPATH": root}
+    out = subprocess.run(
+        [py, os.path.abspath(__file__), "--profile", obs_path],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=root or os.getcwd(),
+    )
+    if out.returncode != 0:
+        raise RuntimeError(f"profile failed: {out.stderr.strip()[-400:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def cold_start(views: int = 15, baseline: str | None = None, obs_path: str | None = None):
+    """Whole-process `scheimflux calibrate` cold / warm / compiled vs OpenCV TILTED;
+    with `baseline` (a checkout of an earlier scheimflux) the same for it, same run."""
+    from scheimflux.io import read_observations
+
+    py = sys.executable
+    tmp = tempfile.mkdtemp(prefix="sf-cold-")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    off = {**env, "SCHEIMFLUX_CACHE_DIR": "off"}
+    cache = {**env, "SCHEIMFLUX_CACHE_DIR": os.path.join(tmp, "cache")}
+    if obs_path is None:  # the demo's scene: `scheimflux simulate`
+        sim = os.path.join(tmp, "sim")
+        _process([py, "-m", "scheimflux", "simulate", "--out", sim, "--views", str(views)], off)
+        obs_path = os.path.join(sim, "observations.json")
+    obs_path = os.path.abspath(obs_path)
+    cal_path = os.path.join(tmp, "cal.json")
+    calib = [py, "-m", "scheimflux", "calibrate", obs_path, "--out", cal_path, "--overwrite"]
+    t_import = _process([py, "-c", "import scheimflux"], off)
+    t_import_jax = _process([py, "-c", "import jax, equinox, optimistix"], off)
+    t_uncached = _process(calib, off)
+    t_cold = _process(calib, cache)
+    t_warm = _process(calib, cache)
+    prof = _profiled(py, obs_path, off)
+    base = {}
+    if baseline:
+        benv = {**env, "PYTHONPATH": baseline}
+        bcache = {**benv, "SCHEIMFLUX_CACHE_DIR": os.path.join(tmp, "cache-baseline")}
+        # `python -m` puts the working folder first on sys.path: run in the checkout
+        base["cold"] = _process(calib, bcache, cwd=baseline)
+        base["warm"] = _process(calib, bcache, cwd=baseline)
+        bprof = _profiled(py, obs_path, {**env, "SCHEIMFLUX_CACHE_DIR": os.path.join(tmp, "b2")},
+                          baseline)  # fmt: skip
+        base.update(first=bprof["first"], second=bprof["second"], steps=bprof["steps"],
+                    joint=bprof["fit_time"].get("joint", math.nan))  # fmt: skip
+    obs = read_observations(obs_path)
+    sub = dataclasses.replace(obs, stage=None)
+    t_cv = opencv_calibrate(sub, tilted=True, repeats=1)["time_s"]
+    t_cv_import = _process([py, "-c", "import cv2, numpy"], off)
+    cv_process = t_cv + t_cv_import
+    load = os.getloadavg()
+
+    print(f"{views} views; load average {load[0]:.1f} / {load[1]:.1f} (1 / 5 min), "
+          f"{os.cpu_count()} CPUs\n")
+    print(f"{'program (first calibrate, cache off)':<44} {'n':>3} {'trace s':>8} "
+          f"{'lower s':>8} {'XLA s':>8}")
+    rows = sorted(prof["programs"].items(), key=lambda kv: -sum(kv[1][k] for k in
+                  ("trace", "lower", "xla")))
+    tot = {k: sum(r[k] for _, r in rows) for k in ("trace", "lower", "xla", "n")}
+    for name, r in rows[:10]:
+        print(f"{name[:44]:<44} {r['n']:>3} {r['trace']:>8.2f} {r['lower']:>8.2f} "
+              f"{r['xla']:>8.2f}")
+    print(f"{'all ' + str(len(rows)) + ' programs':<44} {tot['n']:>3} {tot['trace']:>8.2f} "
+          f"{tot['lower']:>8.2f} {tot['xla']:>8.2f}")
+    print(f"LM programs traced {prof['solve_traces']}× in the whole calibration; steps "
+          f"{prof['steps']}; traces in a second calibration: {prof['second_traces']}\n")
+    print(f"{'what':<52} {'time s':>8} {'÷ OpenCV':>9}")
+    table = [
+        ("import scheimflux", t_import),
+        ("import jax, equinox, optimistix", t_import_jax),
+        ("scheimflux calibrate, process, cache off", t_uncached),
+        ("scheimflux calibrate, process, empty cache (cold)", t_cold),
+        ("scheimflux calibrate, process, warm cache", t_warm),
+        ("calibrate() first call in a process (cache off)", prof["first"]),
+        ("calibrate() compiled (second call)", prof["second"]),
+        ("  of which the joint LM solve", prof["fit_time"].get("joint", math.nan)),
+        ("OpenCV calibrateCamera TILTED (in process)", t_cv),
+        ("OpenCV TILTED + python/cv2 start-up", cv_process),
+    ]
+    if base:
+        table += [
+            ("baseline: calibrate, process, empty cache (cold)", base["cold"]),
+            ("baseline: calibrate, process, warm cache", base["warm"]),
+            ("baseline: calibrate() first call in a process", base["first"]),
+            ("baseline: calibrate() compiled (second call)", base["second"]),
+            ("baseline:   of which the joint LM solve", base["joint"]),
+        ]
+    for name, t in table:
+        print(f"{name:<52} {t:>8.2f} {t / t_cv:>9.2f}")
+    if base:
+        print(f"LM steps: baseline {base['steps']}, now {prof['steps']}")
+    print("\ntargets: cold ≤ 3× OpenCV: "
+          f"{_flag(t_cold <= 3 * t_cv)} ({t_cold / t_cv:.1f}×); warm ≤ 1× OpenCV: "
+          f"{_flag(t_warm <= t_cv)} ({t_warm / t_cv:.1f}×)")
+
+
 def _flag(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
@@ -111,7 +295,24 @@ def main(argv=None) -> None:
     ap.add_argument("--views", type=int, default=15)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="8 views, 12 gauge frames")
+    ap.add_argument(
+        "--cold-start", action="store_true", help="whole-process and compile times only"
+    )
+    ap.add_argument("--profile", metavar="OBS.json", help=argparse.SUPPRESS)  # internal
+    ap.add_argument(
+        "--baseline", metavar="CHECKOUT", help="with --cold-start: also time this checkout"
+    )
+    ap.add_argument(
+        "--obs", metavar="OBS.json", help="with --cold-start: these observations (default: "
+        "`scheimflux simulate --views VIEWS`)"
+    )
     args = ap.parse_args(argv)
+    if args.profile:
+        _profile(args.profile)
+        return
+    if args.cold_start:
+        cold_start(views=args.views, baseline=args.baseline, obs_path=args.obs)
+        return
     views = min(args.views, 8) if args.quick else args.views
     frames = 12 if args.quick else 36
     repeats = 1 if args.quick else 3

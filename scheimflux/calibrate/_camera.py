@@ -213,30 +213,27 @@ def calibrate_camera(
         )
     camera, poses, how = _initial(obs, model, init)
     freeze = _model_freeze(model, how, freeze, opencv_flags)
-    if model == "opencv":
-        # the ideal pinhole first (every coefficient at zero), then the model's terms
-        first = least_squares(
-            camera_residuals,
-            SystemParams(camera, poses),
-            make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
-            freeze=tuple(dict.fromkeys(freeze + OPENCV_COEFFICIENTS)),
-            max_steps=max_steps,
-            throw=False,
-        )
-        camera, poses = first.params.camera, first.params.board_poses
-    if model in THICK_LENS_MODELS and distortion != "none":
-        # the ideal camera first, then with distortion from zero
-        first = least_squares(
-            camera_residuals,
-            SystemParams(camera, poses),
-            make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust),
-            freeze=freeze,
-            max_steps=max_steps,
-            throw=False,
-        )
-        camera, poses = first.params.camera, first.params.board_poses
-        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
+    # The ideal camera first (the distortion at zero, held), then with the distortion
+    # free. The distortion is held at run time (`hold`), not frozen: both solves have
+    # the same state vector and run the same compiled program.
+    hold = ()
+    if model == "opencv":
+        hold = tuple(c for c in OPENCV_COEFFICIENTS if c not in freeze)
+    elif model in THICK_LENS_MODELS and distortion != "none":
+        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
+        hold = ("camera.distortion",)
+    if hold:
+        first = least_squares(
+            camera_residuals,
+            SystemParams(camera, poses),
+            data,
+            freeze=freeze,
+            hold=hold,
+            max_steps=max_steps,
+            throw=False,
+        )
+        camera, poses = first.params.camera, first.params.board_poses
     params = SystemParams(camera, poses)
     central_first = model == "thick-lens-noncentral"
 
@@ -270,8 +267,14 @@ def calibrate_camera(
 _corner_errors_jit = eqx.filter_jit(corner_errors_px)
 
 
+def _corner_errors(params, data: CalibrationData) -> np.ndarray:
+    """`corner_errors_px` through one compiled program, whichever blocks `params` holds
+    (only the camera and the poses enter)."""
+    return np.asarray(_corner_errors_jit(SystemParams(params.camera, params.board_poses), data))
+
+
 def _rms_px(params, data: CalibrationData) -> float:
-    r = np.asarray(_corner_errors_jit(params, data))
+    r = _corner_errors(params, data)
     n = float(np.sum(np.asarray(data.corner_w)))
     return float(np.sqrt(np.sum(r**2) / (2 * n)))
 

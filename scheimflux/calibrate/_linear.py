@@ -219,28 +219,49 @@ def block_layout(unravel, local_path: str | None) -> tuple[np.ndarray, np.ndarra
     return np.nonzero(mask)[0], local_cols
 
 
-def detect_rows(jvp, global_cols, local_cols, n, dtype, seed: int = 0):
-    """The block of every residual row, from two Jacobian–vector products.
-
-    Tangent 1 puts a random value `u_s` on local slot `s` of every block, tangent 2 the
-    values `ρ_v u_s` with a distinct `ρ_v` per block. A row that depends on block v only
-    gives `(J t2) / (J t1) = ρ_v`; rows with `J t1 = 0` touch no block. Returns the row
-    blocks, or None when some row mixes blocks (no block structure).
-    """
+def row_probes(local_cols: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """The two tangents `(2, n)` of [`detect_rows`][]: a random value `u_s` on local slot
+    `s` of every block, then `ρ_v u_s` with a distinct `ρ_v` per block."""
     V, nl = local_cols.shape
     rng = np.random.default_rng(seed)
     u = rng.uniform(0.5, 1.5, nl) * rng.choice([-1.0, 1.0], nl)
     rho = 1.0 + np.arange(V, dtype=float) / max(V, 1)
-    t1 = np.zeros(n)
-    t2 = np.zeros(n)
-    t1[local_cols] = u[None, :]
-    t2[local_cols] = rho[:, None] * u[None, :]
-    a, b = (np.asarray(x) for x in jvp(jnp.asarray(np.stack([t1, t2]), dtype)))
-    scale = np.max(np.abs(a)) if a.size else 0.0
-    touched = np.abs(a) > 1e-12 * max(scale, 1e-300)
-    ratio = np.where(touched, b / np.where(touched, a, 1.0), 0.0)
-    block = np.rint((ratio - 1.0) * max(V, 1)).astype(np.int64)
-    ok = (block >= 0) & (block < V) & (np.abs(ratio - rho[np.clip(block, 0, V - 1)]) < 1e-6)
-    if np.any(touched & ~ok):
-        return None
-    return np.where(touched, block, V)
+    t = np.zeros((2, n))
+    t[0, local_cols] = u[None, :]
+    t[1, local_cols] = rho[:, None] * u[None, :]
+    return t
+
+
+def rows_from_probes(a, b, n_blocks: int):
+    """The block of every residual row from `a = J t1`, `b = J t2` ([`row_probes`][]).
+
+    A row that depends on block v only gives `b / a = ρ_v`; rows with `a = 0` touch no
+    block (block `n_blocks`). Traceable (jit-compatible): returns `(rows, ok)`, `ok`
+    False when some row mixes blocks (no block structure).
+    """
+    V = n_blocks
+    rho = 1.0 + jnp.arange(V, dtype=a.dtype) / max(V, 1)
+    scale = jnp.max(jnp.abs(a)) if a.size else jnp.zeros((), a.dtype)
+    touched = jnp.abs(a) > 1e-12 * jnp.maximum(scale, 1e-300)
+    ratio = jnp.where(touched, b / jnp.where(touched, a, 1.0), 0.0)
+    block = jnp.rint((ratio - 1.0) * max(V, 1)).astype(jnp.int32)
+    good = (block >= 0) & (block < V) & (jnp.abs(ratio - rho[jnp.clip(block, 0, V - 1)]) < 1e-6)
+    ok = jnp.all(good | ~touched)
+    return jnp.where(touched, block, V).astype(jnp.int32), ok
+
+
+def detect_rows(jvp, global_cols, local_cols, n, dtype, seed: int = 0):
+    """The block of every residual row, from two Jacobian–vector products.
+
+    Tangent 1 puts a random value `u_s` on local slot `s` of every block, tangent 2 the
+    values `ρ_v u_s` with a distinct `ρ_v` per block ([`row_probes`][]). A row that
+    depends on block v only gives `(J t2) / (J t1) = ρ_v`; rows with `J t1 = 0` touch no
+    block. Returns the row blocks, or None when some row mixes blocks (no block
+    structure). (The calibration's solver does the same inside its compiled start
+    program, `_solve._normal_detect`.)
+    """
+    del global_cols
+    t = row_probes(np.asarray(local_cols), n, seed)
+    a, b = jvp(jnp.asarray(t, dtype))
+    rows, ok = rows_from_probes(jnp.asarray(a), jnp.asarray(b), local_cols.shape[0])
+    return np.asarray(rows, dtype=np.int64) if bool(ok) else None

@@ -177,25 +177,35 @@ def gauge_residuals(params: SystemParams, data: CalibrationData) -> Float[Array,
     instead, a cylinder nearly tangent to the laser plane fits any stripe in the plane
     to a fraction of a µm: a false minimum.)
     """
-    n_c = params.plane.n / jnp.linalg.norm(params.plane.n)
+    X_c = jax.vmap(lambda uv: _laser_points_safe(params.camera, params.plane, uv))(data.gauge)
+    return gauge_point_residuals(
+        params.stage, params.eccentricity, params.plane.n, X_c, data.gauge_w, data
+    )
 
-    def one_frame(uv, w, i):
-        X_c = _laser_points_safe(params.camera, params.plane, uv)
-        X_m = jax.vmap(params.stage.to_measurement, in_axes=(0, None))(X_c, i)
-        d = X_m[:, :2] - params.eccentricity
+
+def gauge_point_residuals(stage, eccentricity, plane_n, X_c, w, data) -> Float[Array, " n"]:
+    """[`gauge_residuals`][] from the gauge pixels' laser-plane points `X_c` `(F, L, 3)`
+    (camera frame), with weights `w` `(F, L)`; `data` gives the frame indices, the
+    gauge radius, σ and the robust threshold. The stage solve (camera and plane held)
+    computes `X_c` once and minimises this, with no camera in its compiled program."""
+    n_c = plane_n / jnp.linalg.norm(plane_n)
+
+    def one_frame(X_c, w, i):
+        X_m = jax.vmap(stage.to_measurement, in_axes=(0, None))(X_c, i)
+        d = X_m[:, :2] - eccentricity
         r = jnp.linalg.norm(d, axis=-1)
-        n_m = params.stage.frame_rotation(i) @ (params.stage.R_m_c @ n_c)
+        n_m = stage.frame_rotation(i) @ (stage.R_m_c @ n_c)
         cos = (d @ n_m[:2]) / r
         sin = jnp.sqrt(jnp.maximum(1.0 - cos**2, 1e-6))
         return (r - data.gauge_radius) / sin * w
 
-    r = jax.vmap(one_frame)(data.gauge, data.gauge_w, data.frame_index)
+    r = jax.vmap(one_frame)(X_c, w, data.frame_index)
     r = _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
     # A cylinder fixes the table axis as a line, not the origin along it nor the turn of
     # the measurement frame about it. Fix both gauges: the camera origin lies on the
     # x_m axis (t_m_c = (d, 0, 0)), i.e. the measurement origin is the foot of the
     # perpendicular from the camera to the table axis.
-    gauge_fix = params.stage.t_m_c[1:] / STAGE_GAUGE_MM
+    gauge_fix = stage.t_m_c[1:] / STAGE_GAUGE_MM
     return jnp.concatenate([r, gauge_fix])
 
 

@@ -7,7 +7,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import _corner_errors_jit
+from ._camera import _corner_errors
 from ._gates import outlier_masks
 from ._model import CalibrationData
 from ._plane import _stripe_residuals_jit
@@ -96,7 +96,7 @@ def _unrobust(r: np.ndarray, k: float | None) -> np.ndarray:
 def _block_residuals(params, data):
     """Corner errors `(V, M, 2)` px and the plain stripe `(V, K)` and gauge `(F, L)`
     residuals (units of their σ; zeros where the block is absent)."""
-    err = np.asarray(_corner_errors_jit(params, data))
+    err = _corner_errors(params, data)
     if params.plane is None:
         stripe = np.zeros(data.stripe_w.shape)
     else:

@@ -24,7 +24,13 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from ._linear import BlockNormalCholesky, BlockStructure, block_layout, detect_rows
+from ._linear import (
+    BlockStructure,
+    block_layout,
+    row_probes,
+    rows_from_probes,
+)
+from ._lm import BlockLevenbergMarquardt, result_message
 
 
 class RankDeficientError(ValueError):
@@ -108,6 +114,10 @@ class Fit:
     - `time_s`: wall time of the solve (including compilation on first use).
     - `free_mask`: the filter spec used (True on free leaves).
     - `scale`: the per-parameter column scale D of the initial Jacobian.
+    - `normal_matrix`, `labels`, `n_observations`: `JᵀJ` at the solution over the free
+      parameters (physical units), their names, the residuals of non-zero weight.
+    - `result`, `stats`: optimistix's `Solution.result` and `Solution.stats` (None and
+      empty for a fit read back from a file).
     """
 
     params: eqx.Module
@@ -123,6 +133,8 @@ class Fit:
     normal_matrix: np.ndarray | None = None  # JᵀJ at the solution (physical units)
     labels: tuple[str, ...] = ()  # the free parameters, in the order of its rows
     n_observations: int = 0  # residuals with non-zero weight
+    result: optx.RESULTS | None = None  # optimistix's result of the solve
+    stats: dict = dataclasses.field(default_factory=dict)  # optimistix's `Solution.stats`
 
     @property
     def rms(self) -> float:
@@ -199,10 +211,6 @@ def _scaled(y, args):
     return fn(eqx.combine(unravel(x0 + y * scale), static), data)
 
 
-_residuals_jit = eqx.filter_jit(_scaled)
-_unscaled_jit = eqx.filter_jit(_unscaled)
-
-
 @eqx.filter_jit
 def _jacobian(x, args):
     return jax.jacfwd(_unscaled)(x, args)
@@ -246,70 +254,82 @@ def jacobian(fn: Callable, params, data, spec):
     return _jacobian(x0, (fn, unravel, static, data))
 
 
-class _TrustRegion(optx.ClassicalTrustRegion):
-    """Optimistix's classical trust region with a chosen initial step size.
-
-    Levenberg–Marquardt's damping is `λ = 1 / step_size`. Optimistix starts at λ = 1,
-    which on a unit-column-scaled Jacobian equals the whole diagonal of `JᵀJ`: the first
-    steps are gradient steps and λ falls by 3.5× per step only. Calibration problems are
-    well initialised and have weak valleys (the boards' common depth against the
-    magnification: eigenvalues ~1e-11 of the scaled `JᵀJ`), where heavy damping creeps
-    for hundreds of steps; starting at Gauss–Newton (λ = 1e-12; a failed step still
-    shrinks the region 4×) converges in a handful.
-    """
-
-    initial_step_size: float = 1e12
-    cost_noise: float = 1e-10
-
-    def init(self, y, f_info_struct):
-        state = super().init(y, f_info_struct)
-        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(self.initial_step_size))
-
-    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
-        step_size, accept, result, new_state = super().step(
-            first_step, y, y_eval, f_info, f_eval_info, state
-        )
-        # At the optimum the cost of ~10⁴ residuals is known only to a few 1e-12
-        # (float64 rounding), and every further step "increases" it by that noise. The
-        # classical rule rejects them and shrinks the region for dozens of steps before
-        # LM may stop. A change below `cost_noise` (relative) carries no information:
-        # accept it at an unchanged step size, so the convergence test can see it.
-        f = f_info.as_min()
-        flat = jnp.abs(f_eval_info.as_min() - f) <= self.cost_noise * jnp.abs(f)
-        flat = flat & jnp.invert(accept)
-        step_size = jnp.where(flat, state.step_size, step_size)
-        new_state = eqx.tree_at(lambda s: s.step_size, new_state, step_size)
-        return step_size, accept | flat, result, new_state
-
-
-def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float):
-    """Optimistix's Levenberg–Marquardt with the block normal-equations solver.
+def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mask=None):
+    """Levenberg–Marquardt with the block normal-equations solver
+    ([`BlockLevenbergMarquardt`][], on optimistix's public extension points).
 
     Convergence is judged on RMS changes (of the unit-scaled state and of the residuals,
     in units of their noise σ): with a max-norm a single weakly determined direction,
     whose Gauss–Newton step is only known to ~1e-5 of its (statistically irrelevant)
-    size, keeps the solve stepping long after the cost has stopped changing.
+    size, keeps the solve stepping long after the cost has stopped changing. `mask`
+    (1 free, 0 held; default all free) keeps held components out of that RMS.
     """
-    solver = optx.LevenbergMarquardt(
-        rtol=rtol, atol=atol, norm=optx.rms_norm, linear_solver=BlockNormalCholesky(structure)
-    )
-    return eqx.tree_at(lambda s: s.search, solver, _TrustRegion())
-
-
-@eqx.filter_jit
-def _probe(x, args, tangents):
-    """`J t` for each row of `tangents` (the Jacobian of `_unscaled` at `x`)."""
-    return jax.vmap(lambda t: jax.jvp(lambda z: _unscaled(z, args), (x,), (t,))[1])(tangents)
+    if mask is None:
+        mask = jnp.ones(structure.n)
+    return BlockLevenbergMarquardt(structure, mask, rtol, atol)
 
 
 @eqx.filter_jit
 def _normal_at(x, args, structure: BlockStructure, z):
-    """Residual, block normal matrix, and the exact `Jᵀ(J z)` to check it against."""
-    f = lambda v: _unscaled(v, args)  # noqa: E731
-    r, pullback = jax.vjp(f, x)
-    B = structure.compressed(lambda t: jax.jvp(f, (x,), (t,))[1], x.dtype)
-    Jz = jax.jvp(f, (x,), (z,))[1]
-    return r, structure.normal_matrix(B), pullback(Jz)[0]
+    """Residual, block normal matrix, and `J z` twice to check the structure against:
+    from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
+    no reverse pass, which would double the program)."""
+    r, jvp = jax.linearize(lambda v: _unscaled(v, args), x)
+    JT = jax.vmap(jvp, out_axes=1)(jnp.concatenate([z[None], structure.seeds(x.dtype)]))
+    B = JT[:, 1:]
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
+
+
+@eqx.filter_jit
+def _normal_detect(x, args, global_cols, local_cols, probes, z):
+    """`_normal_at` with the rows' blocks found in the same program.
+
+    One batch of Jacobian–vector products serves the two row probes
+    ([`row_probes`][]), the check vector `z` and the compressed Jacobian (its seeds
+    depend on the columns only), so a solve's start and end are one compiled program.
+
+    **Returns:** `(r, JᵀJ, J z from the structure, J z, row blocks, ok)`; `ok` False
+    when some row mixes blocks (then the normal matrix is not valid and the caller goes
+    dense).
+    """
+    V = local_cols.shape[0]
+    seeds = BlockStructure(global_cols, local_cols, jnp.zeros((1,), jnp.int32), V).seeds(x.dtype)
+    tangents = jnp.concatenate([probes.astype(x.dtype), z[None], seeds])
+    r, jvp = jax.linearize(lambda v: _unscaled(v, args), x)
+    JT = jax.vmap(jvp, out_axes=1)(tangents)
+    rows, ok = rows_from_probes(JT[:, 0], JT[:, 1], V)
+    structure = BlockStructure(global_cols, local_cols, rows, V)
+    B = JT[:, 3:]
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 2], rows, ok
+
+
+def _dense(n: int, n_rows: int) -> BlockStructure:
+    """All columns global: dense normal equations."""
+    return BlockStructure(
+        jnp.arange(n, dtype=jnp.int32),
+        jnp.zeros((1, 0), jnp.int32),
+        jnp.zeros(n_rows, jnp.int32),
+        0,
+    )
+
+
+def _normal_equations(x, args, layout, z):
+    """`(structure, r, JᵀJ, J z from the structure, J z)` at `x`: block structure where
+    the rows split by block (`layout` = `(global_cols, local_cols)`, or a
+    `BlockStructure` to reuse), dense normal equations otherwise."""
+    if isinstance(layout, BlockStructure):
+        return (layout, *_normal_at(x, args, layout, z))
+    global_cols, local_cols = layout
+    n = x.shape[0]
+    if local_cols.shape[1]:
+        gc, lc = jnp.asarray(global_cols, jnp.int32), jnp.asarray(local_cols, jnp.int32)
+        probes = jnp.asarray(row_probes(local_cols, n), x.dtype)
+        r, H, Bz, Jz, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
+        if bool(ok):
+            return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, Bz, Jz
+    n_rows = eqx.filter_eval_shape(_unscaled, x, args).shape[0]
+    structure = _dense(n, n_rows)
+    return (structure, *_normal_at(x, args, structure, z))
 
 
 def block_structure(fn, params, data, spec, blocks: str | None = "board_poses"):
@@ -320,27 +340,10 @@ def block_structure(fn, params, data, spec, blocks: str | None = "board_poses"):
     (dense normal equations) where the rows do not split by block.
     """
     x0, unravel, static = split(params, spec)
-    args = (fn, unravel, static, data)
-    global_cols, local_cols = block_layout(unravel, blocks)
-    n = x0.shape[0]
-    rows = None
-    if local_cols.shape[1]:
-        rows = detect_rows(lambda T: _probe(x0, args, T), global_cols, local_cols, n, x0.dtype)
-    if rows is None:
-        n_rows = _unscaled_jit(x0, args).shape[0]
-        structure = BlockStructure(
-            jnp.arange(n, dtype=jnp.int32),
-            jnp.zeros((1, 0), jnp.int32),
-            jnp.zeros(n_rows, jnp.int32),
-            0,
-        )
-    else:
-        structure = BlockStructure(
-            jnp.asarray(global_cols, jnp.int32),
-            jnp.asarray(local_cols, jnp.int32),
-            jnp.asarray(rows, jnp.int32),
-            int(local_cols.shape[0]),
-        )
+    z = jnp.zeros_like(x0)
+    structure, *_ = _normal_equations(
+        x0, (fn, unravel, static, data), block_layout(unravel, blocks), z
+    )
     return structure, (x0, unravel, static)
 
 
@@ -351,6 +354,7 @@ def least_squares(
     *,
     freeze: Sequence[str] = (),
     spec=None,
+    hold: Sequence[str] = (),
     blocks: str | None = "board_poses",
     max_steps: int = 200,
     rtol: float = 1e-5,
@@ -365,6 +369,10 @@ def least_squares(
     - `params`: initial parameter pytree (`eqx.Module`).
     - `data`: pytree of arrays passed to `fn`.
     - `freeze`: dotted paths of leaves or sub-trees to hold fixed (or give `spec`).
+    - `hold`: further paths held fixed *at run time*: they stay in the compiled state
+      vector with a column scale of zero, so a solve that holds them (e.g. the ideal
+      camera before its distortion is freed) runs the same compiled program as the
+      solve that frees them. The `Fit` reports them as frozen.
     - `blocks`: the sub-tree of per-view parameters (leading view axis) whose columns
       are local to their view's residuals; the normal equations are assembled block by
       block (`BlockNormalCholesky`). None: dense normal equations.
@@ -381,46 +389,59 @@ def least_squares(
     if spec is None:
         spec = free_spec(params, freeze)
     t0 = time.perf_counter()
-    structure, (x0, unravel, static) = block_structure(fn, params, data, spec, blocks)
+    x0, unravel, static = split(params, spec)
     args0 = (fn, unravel, static, data)
+    layout = block_layout(unravel, blocks)
     z = jnp.asarray(np.random.default_rng(1).standard_normal(x0.shape), x0.dtype)
-    r0, H, JtJz = _normal_at(x0, args0, structure, z)
+    structure, r0, H, Bz, Jz = _normal_equations(x0, args0, layout, z)
     if not bool(jnp.all(jnp.isfinite(H))):
         raise ValueError("the Jacobian is not finite at the initial parameters")
     if not bool(jnp.all(jnp.isfinite(r0))):
         bad = int(jnp.sum(~jnp.isfinite(r0)))
         raise ValueError(f"{bad} residuals are not finite at the initial parameters")
-    if not np.allclose(H @ z, JtJz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(JtJz)))):
-        raise RuntimeError("internal error: the block normal matrix does not match JᵀJ")
+    # the compressed Jacobian and the rows' blocks (from which JᵀJ is assembled) must
+    # rebuild J z for a random z exactly (to rounding): a row given to the wrong block
+    # would not
+    if not np.allclose(Bz, Jz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(Jz)))):
+        raise RuntimeError("internal error: the block Jacobian does not match J")
     col = jnp.sqrt(jnp.diag(H))
     scale = jnp.where(col > 0, 1.0 / jnp.where(col > 0, col, 1.0), 1.0)
+    free, spec_free = np.ones(x0.shape, bool), spec
+    if hold:
+        free, spec_free = _held(params, spec, hold)
+        scale = jnp.where(jnp.asarray(free), scale, 0.0)
     args = (fn, unravel, static, data, x0, scale)
     y0 = jnp.zeros_like(x0)
     sol = optx.least_squares(
         _scaled,
-        levenberg_marquardt(structure, rtol, atol),
+        levenberg_marquardt(structure, rtol, atol, jnp.asarray(free, x0.dtype)),
         y0,
         args,
         max_steps=max_steps,
         throw=False,
     )
     y = sol.value
-    r = _residuals_jit(y, args)
-    # JᵀJ at the solution, for the parameters' covariance (same compiled program)
-    _, H_end, _ = _normal_at(x0 + y * scale, args0, structure, z)
-    H_end = np.asarray(H_end)
+    # residuals and JᵀJ at the solution (for the covariance): the start's program again
+    # (rows re-detected; the start's structure if they no longer split the same way)
+    x_end = x0 + y * scale
+    end = _normal_equations(x_end, args0, layout if structure.n_blocks else structure, z)
+    if end[0].n_blocks != structure.n_blocks:
+        end = _normal_equations(x_end, args0, structure, z)
+    _, r, H_end, _, _ = end
+    H_end = np.asarray(H_end)[np.ix_(free, free)]
     if check_rank:
         # judged at the solution: a degeneracy only at the start (a sensor tilt or the
         # rational terms at exactly zero, where their derivatives are those of the
         # principal point and of k1) is not one of the data; at the start only if the
         # solve broke down
-        _check_rank(H_end if np.all(np.isfinite(H_end)) else np.asarray(H), params, spec)
+        H_start = np.asarray(H)[np.ix_(free, free)]
+        _check_rank(H_end if np.all(np.isfinite(H_end)) else H_start, params, spec_free)
     r.block_until_ready()
     elapsed = time.perf_counter() - t0
     ok = sol.result == optx.RESULTS.successful and bool(jnp.all(jnp.isfinite(r)))
-    message = "" if ok else _result_message(sol.result, r)
+    message = result_message(sol.result, bool(jnp.all(jnp.isfinite(r))))
     fit = Fit(
-        params=eqx.combine(unravel(x0 + y * scale), static),
+        params=eqx.combine(unravel(x_end), static),
         converged=bool(ok),
         message=message,
         steps=int(sol.stats["num_steps"]),
@@ -428,25 +449,30 @@ def least_squares(
         initial_cost=float(0.5 * jnp.sum(r0**2)),
         cost=float(0.5 * jnp.sum(r**2)),
         time_s=elapsed,
-        free_mask=spec,
-        scale=scale,
+        free_mask=spec_free,
+        scale=scale[jnp.asarray(np.flatnonzero(free))],
         normal_matrix=H_end,
-        labels=tuple(parameter_labels(params, spec)),
+        labels=tuple(parameter_labels(params, spec_free)),
         n_observations=int(np.count_nonzero(np.asarray(r))),
+        result=sol.result,
+        stats=dict(sol.stats),
     )
     if throw and not ok:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {message}", fit)
     return fit
 
 
-def _result_message(result, r) -> str:
-    if not bool(jnp.all(jnp.isfinite(r))):
-        return "residuals became non-finite"
-    for name in ("max_steps_reached", "nonlinear_divergence", "nonlinear_max_steps_reached"):
-        member = getattr(optx.RESULTS, name, None)
-        if member is not None and result == member:
-            return name.replace("_", " ")
-    return "optimistix reported failure"
+def _held(params, spec, hold: Sequence[str]):
+    """`(free, spec_free)`: which scalars of the state vector of `spec` are free once the
+    paths `hold` are held too, and the filter spec of those."""
+    not_held = free_spec(params, hold)
+    spec_free = jax.tree.map(lambda a, b: bool(a) and bool(b), spec, not_held)
+    free_p, _ = eqx.partition(params, spec)
+    flags, _ = eqx.partition(spec_free, spec)
+    flags = jax.tree.map(lambda p, f: np.full(np.shape(p), f), free_p, flags)
+    return np.concatenate(
+        [np.ravel(x) for x in jax.tree.leaves(flags)] or [np.zeros(0, bool)]
+    ).astype(bool), spec_free
 
 
 def refine(

@@ -10,14 +10,22 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._model import SystemParams, _laser_points_safe, gauge_residuals, make_data
+from ._model import (
+    CalibrationData,
+    SystemParams,
+    _laser_points_safe,
+    gauge_point_residuals,
+    gauge_residuals,
+    make_data,
+)
 from ._plane import _pad_pow2
-from ._solve import Fit, least_squares
+from ._solve import Fit, NotConvergedError, free_spec, least_squares
 from ._stage_axis import (
     _fit_cylinder_axis,
     _Sections,
@@ -185,22 +193,65 @@ def calibrate_stage(
         obs = dataclasses.replace(obs, views=[blank])
     data = make_data(obs, sigma_stripe_mm=sigma_stripe_mm)
     poses = Pose(jnp.zeros((1, 3)), jnp.zeros((1, 3)))
-    params = SystemParams(camera, poses, plane, init.stage, jnp.asarray(init.eccentricity_mm))
+    # Camera and plane are held: the gauge pixels' laser-plane points are computed once
+    # and the solve minimises `gauge_residuals` on them (`gauge_point_residuals`), so
+    # its compiled program holds no camera model.
+    points = _GaugePoints(_plane_points(camera, plane, data.gauge), plane.n, data)
     fit = least_squares(
-        gauge_residuals,
-        params,
-        data,
-        freeze=("camera", "board_poses", "plane", "stage.delta_omega", *freeze),
+        _stage_residuals,
+        _StageUnknowns(init.stage, jnp.asarray(init.eccentricity_mm)),
+        points,
+        freeze=("stage.delta_omega", *freeze),
+        blocks=None,
         max_steps=max_steps,
-        throw=throw,
+        throw=False,
     )
+    # reported over the whole parameter pytree, as the solve of `gauge_residuals` with
+    # camera, poses and plane frozen (same free parameters, labels, residuals)
+    full = SystemParams(camera, poses, plane, fit.params.stage, fit.params.eccentricity)
+    spec = free_spec(full, ("camera", "board_poses", "plane", "stage.delta_omega", *freeze))
+    fit = dataclasses.replace(fit, params=full, free_mask=spec)
+    if throw and not fit.converged:
+        raise NotConvergedError(f"Levenberg–Marquardt did not converge: {fit.message}", fit)
+    r = np.asarray(fit.residuals) * float(data.sigma_stripe_mm)
+    rms = float(np.sqrt(np.sum(r**2) / max(float(np.sum(np.asarray(data.gauge_w))), 1.0)))
     return StageCalibration(
         fit.params.stage,
         np.asarray(fit.params.eccentricity),
         fit,
-        _gauge_rms(fit.params, data),
+        rms,
         init,
     )
+
+
+class _StageUnknowns(eqx.Module):
+    """What the stage solve moves: the table axis and the gauge's eccentricity."""
+
+    stage: RotaryStage
+    eccentricity: Float[Array, "2"]
+
+
+class _GaugePoints(eqx.Module):
+    """The stage solve's data: the gauge pixels' laser-plane points `(F, L, 3)`, the
+    plane's normal and the padded observations (weights, frame indices, σ)."""
+
+    points: Float[Array, "F L 3"]
+    plane_n: Float[Array, "3"]
+    data: CalibrationData
+
+
+def _stage_residuals(p: _StageUnknowns, d: _GaugePoints):
+    return gauge_point_residuals(
+        p.stage, p.eccentricity, d.plane_n, d.points, d.data.gauge_w, d.data
+    )
+
+
+def _plane_points(camera, plane: LaserPlane, uv) -> jnp.ndarray:
+    """Laser-plane points of the padded pixels `(F, L, 2)` (one compiled call)."""
+    F, L, _ = uv.shape
+    flat = np.asarray(uv).reshape(-1, 2)
+    X = _laser_points_jit(camera, plane, jnp.asarray(_pad_pow2(flat)))
+    return X[: F * L].reshape(F, L, 3)
 
 
 def _gauge_rms(params, data) -> float:
