@@ -219,7 +219,7 @@ def calibration_axis_conditioning(cal) -> AxisConditioning | None:
     """
     fits = getattr(cal, "fits", {}) or {}
     fit = fits.get("joint", fits.get("stage"))
-    if fit is None or getattr(fit.params, "stage", None) is None:
+    if getattr(getattr(fit, "params", None), "stage", None) is None:
         return None
     cov = _fit_covariance(fit)
     if cov is None:
