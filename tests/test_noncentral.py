@@ -90,6 +90,8 @@ def test_project_inverts_backproject(depth):
     assert float(jnp.max(miss)) < 1e-10 * depth
 
 
+# slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
+@pytest.mark.slow
 def test_jit_equals_eager_and_vmap_equals_loop():
     cam = _wide()
     X = cam.backproject(_pixels(8)).direction * 30.0
@@ -116,6 +118,8 @@ def _with(cam, v):
     return eqx.tree_at(where, cam, (v[0], v[1], v[2], v[3], v[4:]))
 
 
+# slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
+@pytest.mark.slow
 def test_projection_gradients_match_finite_differences():
     # The implicit derivative through the fixed point (one Newton step at the solution)
     # against central differences of the converged projection. Step 1e-6 relative:
@@ -136,6 +140,8 @@ def test_projection_gradients_match_finite_differences():
     np.testing.assert_allclose(Jx, Jx_fd, rtol=1e-6, atol=1e-6 * float(np.abs(Jx_fd).max()))
 
 
+# slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
+@pytest.mark.slow
 def test_backprojection_gradients_match_finite_differences():
     cam = _wide()
     uv = _pixels(4, seed=5)
