@@ -17,29 +17,72 @@ import sys
 from .._cache import enable_compilation_cache
 from ._common import CLIError
 
-# Subcommand modules, in the order `--help` lists them.
-_SUBCOMMANDS = (
-    "_demo",
-    "_lens",
-    "_simulate",
-    "_detect",
-    "_extract",
-    "_calibrate",
-    "_reconstruct",
-    "_measure",
-    "_verify",
-    "_report",
-    "_export",
-)
+# Subcommand → (module, the one-line help it registers), in the order `--help` lists them.
+# The help lines are repeated here so that `scheimflux --help` and a mistyped command need
+# no subcommand module (some import JAX, OpenCV or the stripe extractor at the top); a
+# test checks that each line equals what the module registers.
+_SUBCOMMANDS = {
+    "demo": ("_demo", "run the measurement chain end to end on built-in simulated data"),
+    "lens": (
+        "_lens",
+        "paraxial data (focal length, principal points, pupils) of a lens prescription",
+    ),
+    "simulate": (
+        "_simulate",
+        "simulate calibration observations by ray tracing through a real lens",
+    ),
+    "detect": (
+        "_detect",
+        "detect calibration targets and laser stripes in a folder of captures",
+    ),
+    "extract": ("_extract", "extract sub-pixel laser-line centres from a folder of images"),
+    "calibrate": (
+        "_calibrate",
+        "calibrate camera, laser plane and rotary stage from observations",
+    ),
+    "reconstruct": ("_reconstruct", "reconstruct stripe pixels as 3-D points with a calibration"),
+    "measure": (
+        "_measure",
+        "fit a cylinder, plane, sphere, circle, steps or a distance, with uncertainty",
+    ),
+    "verify": (
+        "_verify",
+        "measure an artefact not used in calibration: measured - nominal ± U, pass/fail",
+    ),
+    "report": (
+        "_report",
+        "an HTML report of a calibration (parameters, correlations, residual maps)",
+    ),
+    "export": (
+        "_export",
+        "export a calibration to OpenCV's camera file (camera_matrix, distortion)",
+    ),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(load: str | tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The `scheimflux` argument parser.
+
+    **Arguments:**
+    - `load`: the subcommand(s) whose module is imported and whose full parser is built;
+      every other subcommand gets a placeholder with its one-line help only (enough for
+      `scheimflux --help` and for argparse's "invalid choice" error). None: all of them.
+
+    **Returns:** the parser.
+    """
+    if load is None:
+        load = tuple(_SUBCOMMANDS)
+    elif isinstance(load, str):
+        load = (load,)
     parser = argparse.ArgumentParser(
         prog="scheimflux",
         description="Laser line-structured-light 3D measurement with Scheimpflug cameras.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _SUBCOMMANDS:
+    for command, (name, help_line) in _SUBCOMMANDS.items():
+        if command not in load:
+            sub.add_parser(command, help=help_line, add_help=False)
+            continue
         try:
             module = importlib.import_module(f"scheimflux.cli.{name}")
         except ModuleNotFoundError as err:
@@ -50,8 +93,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command(argv: list[str]) -> str | None:
+    """The subcommand named on the command line (the first word not starting with -)."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in _SUBCOMMANDS else None
+        if word in ("-h", "--help"):
+            return None
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command(argv)
+    # Only the named subcommand's module is imported (parse first, import the heavy
+    # library only where it is needed): `scheimflux --help` stays light.
+    parser = build_parser(load=() if command is None else command)
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
