@@ -134,8 +134,9 @@ def test_fast_gradients_equal_reference():
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(np.asarray(b)).max())
 
 
-def test_measurement_fast_equals_reference():
-    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+@pytest.mark.parametrize("name", ["thick", "distorted"])  # two programs / one program
+def test_measurement_fast_equals_reference(name):
+    cam, plane = _cameras()[name], sf.paper_laser_plane()
     stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
     uv = _pixels(5 * 80).reshape(5, 80, 2)
     fi = np.arange(5)[:, None]
@@ -146,3 +147,37 @@ def test_measurement_fast_equals_reference():
     )
     np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
     np.testing.assert_allclose(fast.points, ref.points, rtol=1e-12)
+
+
+def _batch_loops(compiled_text: str, n: int) -> list[str]:
+    """The top-level instructions of the entry computation that loop over the `n` pixels
+    (fusions or unfused element-wise ops whose result has a dimension `n`)."""
+    entry = compiled_text[compiled_text.index("ENTRY") :]
+    lines = [ln for ln in entry.splitlines()[1:] if " = " in ln and "parameter(" not in ln]
+    return [ln.split(" = ")[0].strip() for ln in lines if f"[{n}" in ln.split("(")[0]]
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_undistorted_kernel_is_one_pass_per_output(dtype):
+    # Issue 14: each output of the undistorted kernel is written by one loop over the
+    # pixels that reads only the pixels (and, for the points, the status), with no
+    # intermediate per-pixel array (q, 1/q, a stacked copy) in memory. The shapes are
+    # odd sizes so that no parameter shape matches by chance.
+    from scheimflux.reconstruct import _kernel as k
+
+    n = 1237
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    uv = jnp.zeros((n, 2), dtype)
+    code = jnp.zeros((n,), jnp.int8)
+    sensor = jnp.asarray(SENSOR, dtype)
+    programs = {
+        "status": k._status_program.lower(cam, plane, uv, sensor),
+        "points": k._camera_program.lower(cam, plane, uv, code),
+        "measurement": k._measurement_program.lower(
+            cam, plane, stage, uv, jnp.arange(n, dtype=dtype), code
+        ),
+    }
+    for name, lowered in programs.items():
+        loops = _batch_loops(lowered.compile().as_text(), n)
+        assert len(loops) == 1 and loops[0].startswith("ROOT"), (name, loops)

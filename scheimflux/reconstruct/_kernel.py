@@ -92,18 +92,10 @@ def _undistorted_pixels(camera: ThickLensScheimpflug, u, v):
     return uu.reshape(shape), vv.reshape(shape), ok.reshape(shape)
 
 
-def camera_kernel(camera: AbstractCamera, plane: LaserPlane, u, v, sensor=None):
-    """Eq. (3) on pixel planes `u`, `v` (same shape, any batch).
-
-    **Arguments:**
-    - `camera`: a camera with `has_fast_path(camera)`.
-    - `plane`: the laser plane (camera frame).
-    - `u`, `v`: pixel coordinates, same shape and float dtype.
-    - `sensor`: None or `(w, h)` as an array: pixels outside get `OUTSIDE_SENSOR`.
-
-    **Returns:** `((x, y, z), status)`: coordinate planes (mm, NaN where invalid) and
-    int8 `Status` codes, each of the shape of `u`.
-    """
+def _rays(camera: AbstractCamera, plane: LaserPlane, u, v):
+    """`H`, the finite stand-in (and, with distortion, undistorted) pixel planes `su`,
+    `sv`, the plane normal used, whether each pixel is finite, whether its ray is usable
+    so far, and whether the plane is usable."""
     fin = jnp.isfinite(u) & jnp.isfinite(v)
     H = _pixel_matrix(camera)
     su = jnp.where(fin, u, jnp.zeros_like(u))
@@ -116,11 +108,16 @@ def camera_kernel(camera: AbstractCamera, plane: LaserPlane, u, v, sensor=None):
         if camera.is_distorted:
             su, sv, ok_u = _undistorted_pixels(camera, su, sv)
             ok = ok & ok_u
+    p_ok = plane_ok(plane)
+    n = jnp.where(p_ok, plane.n, jnp.zeros_like(plane.n).at[2].set(1.0))
+    return H, su, sv, n, fin, ok, p_ok
+
+
+def _status(H, su, sv, n, fin, ok, p_ok, u, v, sensor):
+    """int8 `Status` codes of the pixels (`_rays`' output and the raw pixels `u`, `v`)."""
     h = [H[i, 0] * su + H[i, 1] * sv + H[i, 2] for i in range(4)]
     hh = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
     ok = ok & (h[3] != 0) & jnp.isfinite(hh) & jnp.isfinite(h[3]) & (hh > 0)
-    p_ok = plane_ok(plane)
-    n = jnp.where(p_ok, plane.n, jnp.zeros_like(plane.n).at[2].set(1.0))
     q = n[0] * h[0] + n[1] * h[1] + n[2] * h[2]
     parallel = q * q < (PARALLEL_COS**2 * jnp.sum(n * n)) * hh
     behind = h[3] * q <= 0
@@ -136,28 +133,78 @@ def camera_kernel(camera: AbstractCamera, plane: LaserPlane, u, v, sensor=None):
     if sensor is not None:
         inside = (u >= -0.5) & (u <= sensor[0] - 0.5) & (v >= -0.5) & (v <= sensor[1] - 0.5)
         code = jnp.where(fin & ~inside & (code != _INVALID), jnp.int8(_OUTSIDE), code)
-    good = code == _OK
-    r = 1 / jnp.where(good, q, jnp.ones_like(q))
-    nan = jnp.asarray(jnp.nan, u.dtype)
-    return tuple(jnp.where(good, hi * r, nan) for hi in h[:3]), code
+    return code
 
 
-def measurement_kernel(stage: RotaryStage, xyz, frame_index):
-    """`X_m = R_i (R_m_c X_c + t_m_c)` (eq. 13) on coordinate planes.
+def _affine3(M, su, sv):
+    """`M [u, v, 1]` for each pixel as a `(*batch, 3)` array, written as broadcasts of the
+    pixel planes against `M`'s columns: XLA lowers it to one vectorised loop over the
+    output, where `jnp.stack` of three planes becomes a per-element select between them
+    (measured 2-4x slower per point)."""
+    return su[..., None] * M[:, 0] + sv[..., None] * M[:, 1] + M[:, 2]
 
-    `frame_index` broadcasts against the planes; its cosines and sines are computed on
-    its own (unbroadcast) shape, i.e. once per frame, not once per pixel.
+
+def _divide_valid(P, m, su, sv, code):
+    """`P / q` with `q = m · [u, v, 1]` where `code` is OK, NaN elsewhere (`q` replaced
+    by 1 first: finite gradients of a masked loss).
+
+    `q` is evaluated for each of the three output columns (`_affine3` of a 3×3 matrix
+    whose rows are all `m`) rather than once per pixel and broadcast: XLA rewrites
+    `P / broadcast(q)` into `P * broadcast(1 / q)` and keeps the (expensive) reciprocal
+    out of the output loop, a second pass through memory; three multiply-adds per output
+    element cost less than that pass."""
+    good = (code == _OK)[..., None]
+    q = _affine3(jnp.stack([m, m, m]), su, sv)
+    r = jnp.where(good, q, jnp.ones_like(q))
+    return jnp.where(good, P / r, jnp.asarray(jnp.nan, P.dtype))
+
+
+def _camera_points(H, su, sv, n, code):
+    """Eq. (3) as `(*batch, 3)`: `X = h[:3] / (n · h[:3])`, NaN where `code` is not OK."""
+    H3 = H[:3]
+    m = n @ H3  # n · h[:3] = m · [u, v, 1]
+    return _divide_valid(_affine3(H3, su, sv), m, su, sv, code)
+
+
+def _measurement_points(stage: RotaryStage, H, su, sv, n, code, frame_index):
+    """Eq. (13) `X_m = R_i (R_m_c X_c + t_m_c)` as `(*batch, 3)`, NaN where not OK.
+
+    With `X_c = H[:3] p̃ / q` and `G = R_m_c H[:3]`, `X_m = (R_i G) p̃ / q + R_i t_m_c`:
+    one affine map of the pixel per frame, divided once. `R_i` turns about z by `i Δω`;
+    its cosine and sine are computed on `frame_index`'s own (unbroadcast) shape, i.e.
+    once per frame, and `R_i G` is written as `c G_α + s G_β + G_γ` (the rows of `G`
+    that the cosine, the sine and neither multiply), all broadcasts against the output
+    so that XLA keeps one loop over it."""
+    G = stage.R_m_c @ H[:3]
+    t = stage.t_m_c
+    z = jnp.zeros_like(G[0])
+    ang = jnp.asarray(frame_index, su.dtype) * stage.delta_omega.astype(su.dtype)
+    c, s = jnp.cos(ang)[..., None, None], jnp.sin(ang)[..., None, None]
+    W = c * jnp.stack([G[0], G[1], z]) + s * jnp.stack([-G[1], G[0], z])
+    W = W + jnp.stack([z, z, G[2]])  # (*frames, 3, 3): R_i G
+    zt = jnp.zeros_like(t[0])
+    T = c[..., 0] * jnp.stack([t[0], t[1], zt]) + s[..., 0] * jnp.stack([-t[1], t[0], zt])
+    T = T + jnp.stack([zt, zt, t[2]])  # (*frames, 3): R_i t_m_c
+    P = su[..., None] * W[..., 0] + sv[..., None] * W[..., 1] + W[..., 2]
+    return _divide_valid(P, n @ H[:3], su, sv, code) + T
+
+
+def camera_kernel(camera: AbstractCamera, plane: LaserPlane, u, v, sensor=None):
+    """Eq. (3) on pixel planes `u`, `v` (same shape, any batch), structure of arrays.
+
+    **Arguments:**
+    - `camera`: a camera with `has_fast_path(camera)`.
+    - `plane`: the laser plane (camera frame).
+    - `u`, `v`: pixel coordinates, same shape and float dtype.
+    - `sensor`: None or `(w, h)` as an array: pixels outside get `OUTSIDE_SENSOR`.
+
+    **Returns:** `(points, status)`: `(*shape, 3)` points (mm, NaN where invalid) and
+    int8 `Status` codes of the shape of `u`.
     """
-    x, y, z = xyz
-    R, t = stage.R_m_c, stage.t_m_c
-    a = [R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)]
-    ang = jnp.asarray(frame_index, x.dtype) * stage.delta_omega.astype(x.dtype)
-    c, s = jnp.cos(ang), jnp.sin(ang)
-    return (c * a[0] - s * a[1], s * a[0] + c * a[1], a[2])
-
-
-def _stack3(xyz):
-    return jnp.stack(xyz, axis=-1)
+    rays = _rays(camera, plane, u, v)
+    code = _status(*rays, u, v, sensor)
+    H, su, sv, n = rays[:4]
+    return _camera_points(H, su, sv, n, code), code
 
 
 def cast_floats(tree, dtype):
@@ -169,17 +216,72 @@ def cast_floats(tree, dtype):
 # an array, and the C++ dispatch of `jax.jit` costs microseconds per call, not the
 # pytree filtering of `filter_jit` (which dominated below 1e5 points). The parameters are
 # cast to the pixels' dtype inside the trace.
+#
+# One pass over memory (issue 14). XLA:CPU fuses element-wise code into one loop per
+# output but does not fuse loops with outputs of different shapes ((N, 3) points, (N,)
+# status): compiled as one program, the kernel made three passes (q = n · h written out,
+# then the status, then the points reading both: ~50 bytes per float32 point). Without
+# distortion the pixel → ray map is a dozen multiply-adds, cheaper to compute twice than
+# to store, so it runs as two programs of one fusion each: the status (read uv, write
+# 1 byte) and the points (read uv and the status, write 3 floats), ~30 bytes per float32
+# point. The points take the status as input (not a recomputation of it) so that the NaN
+# pattern equals `status != 0` exactly, whatever XLA contracts into FMAs in either
+# program. With distortion the undistortion dominates the cost and one program
+# computes it once.
+
+
 @jax.jit
-def fast_stripe_to_camera(camera, plane, uv, sensor=None):
-    """`(points (*batch, 3), status (*batch,))` from pixels `(*batch, 2)` (one fusion)."""
+def _status_program(camera, plane, uv, sensor):
     camera, plane = cast_floats((camera, plane), uv.dtype)
-    xyz, code = camera_kernel(camera, plane, uv[..., 0], uv[..., 1], sensor)
-    return _stack3(xyz), code
+    u, v = uv[..., 0], uv[..., 1]
+    return _status(*_rays(camera, plane, u, v), u, v, sensor)
 
 
 @jax.jit
+def _camera_program(camera, plane, uv, code):
+    camera, plane = cast_floats((camera, plane), uv.dtype)
+    H, su, sv, n, *_ = _rays(camera, plane, uv[..., 0], uv[..., 1])
+    return _camera_points(H, su, sv, n, code)
+
+
+@jax.jit
+def _measurement_program(camera, plane, stage, uv, frame_index, code):
+    camera, plane, stage = cast_floats((camera, plane, stage), uv.dtype)
+    H, su, sv, n, *_ = _rays(camera, plane, uv[..., 0], uv[..., 1])
+    return _measurement_points(stage, H, su, sv, n, code, frame_index)
+
+
+@jax.jit
+def _fused_camera(camera, plane, uv, sensor):
+    camera, plane = cast_floats((camera, plane), uv.dtype)
+    return camera_kernel(camera, plane, uv[..., 0], uv[..., 1], sensor)
+
+
+@jax.jit
+def _fused_measurement(camera, plane, stage, uv, frame_index, sensor):
+    camera, plane, stage = cast_floats((camera, plane, stage), uv.dtype)
+    u, v = uv[..., 0], uv[..., 1]
+    rays = _rays(camera, plane, u, v)
+    code = _status(*rays, u, v, sensor)
+    H, su, sv, n = rays[:4]
+    return _measurement_points(stage, H, su, sv, n, code, frame_index), code
+
+
+def _two_pass(camera) -> bool:
+    return not (isinstance(camera, ThickLensScheimpflug) and camera.is_distorted)
+
+
+def fast_stripe_to_camera(camera, plane, uv, sensor=None):
+    """`(points (*batch, 3), status (*batch,))` from pixels `(*batch, 2)`."""
+    if not _two_pass(camera):
+        return _fused_camera(camera, plane, uv, sensor)
+    code = _status_program(camera, plane, uv, sensor)
+    return _camera_program(camera, plane, uv, code), code
+
+
 def fast_stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
     """As `fast_stripe_to_camera`, then eq. (13); `frame_index` broadcasts to the batch."""
-    camera, plane, stage = cast_floats((camera, plane, stage), uv.dtype)
-    xyz, code = camera_kernel(camera, plane, uv[..., 0], uv[..., 1], sensor)
-    return _stack3(measurement_kernel(stage, xyz, frame_index)), code
+    if not _two_pass(camera):
+        return _fused_measurement(camera, plane, stage, uv, frame_index, sensor)
+    code = _status_program(camera, plane, uv, sensor)
+    return _measurement_program(camera, plane, stage, uv, frame_index, code), code
