@@ -159,25 +159,23 @@ def _batch_loops(compiled_text: str, n: int) -> list[str]:
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_undistorted_kernel_is_one_pass_per_output(dtype):
-    # Issue 14: each output of the undistorted kernel is written by one loop over the
-    # pixels that reads only the pixels (and, for the points, the status), with no
-    # intermediate per-pixel array (q, 1/q, a stacked copy) in memory. The shapes are
-    # odd sizes so that no parameter shape matches by chance.
+    # Issue 14: each output of the undistorted kernel (status, points) is written by one
+    # loop over the pixels that reads only the pixels (the points loop also the status),
+    # with no intermediate per-pixel array (q, 1/q, a stacked copy) in memory: two
+    # batch-sized loops per program. The size is odd so that no other shape matches.
     from scheimflux.reconstruct import _kernel as k
 
     n = 1237
     cam, plane = _cameras()["thick"], sf.paper_laser_plane()
     stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
     uv = jnp.zeros((n, 2), dtype)
-    code = jnp.zeros((n,), jnp.int8)
     sensor = jnp.asarray(SENSOR, dtype)
     programs = {
-        "status": k._status_program.lower(cam, plane, uv, sensor),
-        "points": k._camera_program.lower(cam, plane, uv, code),
-        "measurement": k._measurement_program.lower(
-            cam, plane, stage, uv, jnp.arange(n, dtype=dtype), code
+        "camera": k.fast_stripe_to_camera.lower(cam, plane, uv, sensor),
+        "measurement": k.fast_stripe_to_measurement.lower(
+            cam, plane, stage, uv, jnp.arange(n, dtype=dtype), sensor
         ),
     }
     for name, lowered in programs.items():
         loops = _batch_loops(lowered.compile().as_text(), n)
-        assert len(loops) == 1 and loops[0].startswith("ROOT"), (name, loops)
+        assert len(loops) == 2, (name, loops)

@@ -8,10 +8,12 @@ through `P = h[:3] / h[3]`, and its intersection with `n · X = 1` is
 
     X = h[:3] / (n · h[:3])
 
-(the `h[3]` and the norm of the direction cancel). So each pixel costs twelve
+(the `h[3]` and the norm of the direction cancel). So each pixel costs a dozen
 multiply-adds and one division, computed on the `u` and `v` planes of the input
-(structure of arrays: every operation is a whole-array element-wise op that XLA fuses
-into one loop over the pixels; no per-pixel 3×3 products, no gathers). The status codes
+(every operation a whole-array element-wise op or a broadcast, which XLA fuses into one
+loop per output: the status, then the points written straight into the `(N, 3)` array;
+no per-pixel 3×3 products, no gathers, no while loop: the undistortion's fixed point is
+a fixed count of unrolled steps, `camera/_thick_lens.py`). The status codes
 are those of the reference (`intersect_ray_plane` on `backproject_one_with_mask`):
 
 - `INVALID_PIXEL`: non-finite pixel, failed undistortion, `h[3] = 0` or non-finite `h`;
@@ -217,71 +219,31 @@ def cast_floats(tree, dtype):
 # pytree filtering of `filter_jit` (which dominated below 1e5 points). The parameters are
 # cast to the pixels' dtype inside the trace.
 #
-# One pass over memory (issue 14). XLA:CPU fuses element-wise code into one loop per
-# output but does not fuse loops with outputs of different shapes ((N, 3) points, (N,)
-# status): compiled as one program, the kernel made three passes (q = n · h written out,
-# then the status, then the points reading both: ~50 bytes per float32 point). Without
-# distortion the pixel → ray map is a dozen multiply-adds, cheaper to compute twice than
-# to store, so it runs as two programs of one fusion each: the status (read uv, write
-# 1 byte) and the points (read uv and the status, write 3 floats), ~30 bytes per float32
-# point. The points take the status as input (not a recomputation of it) so that the NaN
-# pattern equals `status != 0` exactly, whatever XLA contracts into FMAs in either
-# program. With distortion the undistortion dominates the cost and one program
-# computes it once.
+# One pass per output (issue 14). XLA:CPU fuses element-wise code into one loop per
+# output but does not merge loops whose outputs differ in shape ((N, 3) points, (N,)
+# status). The kernel as first written made three passes (q = n · h written out, the
+# status reading it, the points reading both, ~50 bytes per float32 point) and built the
+# points with `jnp.stack` (a per-element select, 2-4x slower than a broadcast). Now: the
+# status loop reads the pixels and writes 1 byte; the points loop reads the pixels and
+# the status and writes 3 floats (~30 bytes per float32 point), the ray map being a
+# dozen multiply-adds, cheaper to compute in both loops than to store. With distortion
+# the undistorted pixel planes are computed once, before both loops.
+# `tests/test_reconstruct_fast.py` checks the loop count on the compiled program.
 
 
 @jax.jit
-def _status_program(camera, plane, uv, sensor):
-    camera, plane = cast_floats((camera, plane), uv.dtype)
-    u, v = uv[..., 0], uv[..., 1]
-    return _status(*_rays(camera, plane, u, v), u, v, sensor)
-
-
-@jax.jit
-def _camera_program(camera, plane, uv, code):
-    camera, plane = cast_floats((camera, plane), uv.dtype)
-    H, su, sv, n, *_ = _rays(camera, plane, uv[..., 0], uv[..., 1])
-    return _camera_points(H, su, sv, n, code)
-
-
-@jax.jit
-def _measurement_program(camera, plane, stage, uv, frame_index, code):
-    camera, plane, stage = cast_floats((camera, plane, stage), uv.dtype)
-    H, su, sv, n, *_ = _rays(camera, plane, uv[..., 0], uv[..., 1])
-    return _measurement_points(stage, H, su, sv, n, code, frame_index)
-
-
-@jax.jit
-def _fused_camera(camera, plane, uv, sensor):
+def fast_stripe_to_camera(camera, plane, uv, sensor=None):
+    """`(points (*batch, 3), status (*batch,))` from pixels `(*batch, 2)`."""
     camera, plane = cast_floats((camera, plane), uv.dtype)
     return camera_kernel(camera, plane, uv[..., 0], uv[..., 1], sensor)
 
 
 @jax.jit
-def _fused_measurement(camera, plane, stage, uv, frame_index, sensor):
+def fast_stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
+    """As `fast_stripe_to_camera`, then eq. (13); `frame_index` broadcasts to the batch."""
     camera, plane, stage = cast_floats((camera, plane, stage), uv.dtype)
     u, v = uv[..., 0], uv[..., 1]
     rays = _rays(camera, plane, u, v)
     code = _status(*rays, u, v, sensor)
     H, su, sv, n = rays[:4]
     return _measurement_points(stage, H, su, sv, n, code, frame_index), code
-
-
-def _two_pass(camera) -> bool:
-    return not (isinstance(camera, ThickLensScheimpflug) and camera.is_distorted)
-
-
-def fast_stripe_to_camera(camera, plane, uv, sensor=None):
-    """`(points (*batch, 3), status (*batch,))` from pixels `(*batch, 2)`."""
-    if not _two_pass(camera):
-        return _fused_camera(camera, plane, uv, sensor)
-    code = _status_program(camera, plane, uv, sensor)
-    return _camera_program(camera, plane, uv, code), code
-
-
-def fast_stripe_to_measurement(camera, plane, stage, uv, frame_index, sensor=None):
-    """As `fast_stripe_to_camera`, then eq. (13); `frame_index` broadcasts to the batch."""
-    if not _two_pass(camera):
-        return _fused_measurement(camera, plane, stage, uv, frame_index, sensor)
-    code = _status_program(camera, plane, uv, sensor)
-    return _measurement_program(camera, plane, stage, uv, frame_index, code), code
