@@ -79,8 +79,8 @@ def _run(code: str, **env) -> subprocess.CompletedProcess:
 
 
 def test_import_scheimflux_and_the_cli_parser_import_no_jax():
-    # `import scheimflux` loads none of the heavy libraries; the CLI's --help, a mistyped
-    # command and a subcommand's argument error load no JAX.
+    # `import scheimflux`, the CLI's --help and a mistyped command load none of the heavy
+    # libraries (not even NumPy); a subcommand's --help or argument error loads no JAX.
     code = (
         "import sys\n"
         f"heavy = {_HEAVY!r}\n"
@@ -95,6 +95,8 @@ def test_import_scheimflux_and_the_cli_parser_import_no_jax():
         "    except SystemExit:\n"
         "        pass\n"
         "    assert 'jax' not in sys.modules, argv\n"
+        "    if argv in (['--help'], ['frobnicate'], []):\n"
+        "        assert not [m for m in heavy if m in sys.modules], argv\n"
         "print('ok')\n"
     )
     out = _run(code)

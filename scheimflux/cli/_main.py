@@ -15,7 +15,6 @@ import importlib
 import sys
 
 from .._cache import enable_compilation_cache
-from ._common import CLIError
 
 # Subcommand → (module, the one-line help it registers), in the order `--help` lists them.
 # The help lines are repeated here so that `scheimflux --help` and a mistyped command need
@@ -114,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     enable_compilation_cache()  # already on from `import scheimflux`; idempotent
+    from ._common import CLIError  # NumPy: imported once a subcommand runs
     try:
         return int(args.func(args) or 0)
     except (
