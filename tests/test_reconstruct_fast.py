@@ -179,3 +179,42 @@ def test_undistorted_kernel_is_one_pass_per_output(dtype):
     for name, lowered in programs.items():
         loops = _batch_loops(lowered.compile().as_text(), n)
         assert len(loops) == 2, (name, loops)
+
+
+def test_measurement_gradients_equal_reference():
+    # The measurement points fold the stage into the pixel's affine map (one 3x3 matrix
+    # per frame): its derivatives with respect to camera, plane and stage must be the
+    # reference's (ray, intersection, then eq. 13). A NaN pixel must leave them finite
+    # and equal to those with that pixel left out (the reference itself gives NaN there:
+    # its eq. 13 multiplies the NaN point by a zero cotangent, so it is compared with the
+    # pixel finite and weighted 0).
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    uv = np.array([[[300.0, 200.0], [1300.0, 1000.0]], [[700.0, 500.0], [800.0, 600.0]]])
+    fi = jnp.array([[0.0], [7.0]])
+    weight = jnp.array([[1.0, 1.0], [0.0, 1.0]])[..., None]
+    uv_nan = uv.copy()
+    uv_nan[1, 0] = np.nan
+
+    def grads(path, pixels, w):
+        def f(c, p, s):
+            rec = path(c, p, s, jnp.asarray(pixels))
+            return jnp.sum(w * jnp.where(rec.status[..., None] == 0, rec.points, 0.0) ** 2)
+
+        return jax.tree.leaves(jax.grad(f, argnums=(0, 1, 2))(cam, plane, stage))
+
+    def ref(c, p, s, pixels):
+        return reference_stripe_to_measurement(c, p, s, pixels, jnp.broadcast_to(fi, (2, 2)))
+
+    def fast(c, p, s, pixels):
+        return sf.stripe_to_measurement(c, p, s, pixels, fi)
+
+    g_ref = grads(ref, uv, weight)
+    # rtol as the camera-frame gradients (a few dozen roundings); atol a noise floor of
+    # 1e-12 of the largest derivative: some leaves' true derivative is ~0 (e.g. δω
+    # through frame 0 alone) and both paths give rounding noise there, ~1e-15.
+    floor = 1e-12 * max(float(np.abs(np.asarray(b)).max()) for b in g_ref)
+    for g_fast in (grads(fast, uv, weight), grads(fast, uv_nan, 1.0)):
+        for a, b in zip(g_fast, g_ref):
+            assert np.all(np.isfinite(np.asarray(a)))
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=floor)
