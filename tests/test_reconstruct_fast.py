@@ -162,7 +162,8 @@ def test_undistorted_kernel_is_one_pass_per_output(dtype):
     # Issue 14: each output of the undistorted kernel (status, points) is written by one
     # loop over the pixels that reads only the pixels (the points loop also the status),
     # with no intermediate per-pixel array (q, 1/q, a stacked copy) in memory: two
-    # batch-sized loops per program. The size is odd so that no other shape matches.
+    # batch-sized loops per program (main's kernel had three). The size is odd so that
+    # no other shape matches.
     from scheimflux.reconstruct import _kernel as k
 
     n = 1237
@@ -178,7 +179,9 @@ def test_undistorted_kernel_is_one_pass_per_output(dtype):
     }
     for name, lowered in programs.items():
         loops = _batch_loops(lowered.compile().as_text(), n)
-        assert len(loops) == 2, (name, loops)
+        # at most one loop per output (a future XLA merging both would be fine), and at
+        # least one (the filter finds the loops: not vacuous)
+        assert 1 <= len(loops) <= 2, (name, loops)
 
 
 def test_measurement_gradients_equal_reference():
