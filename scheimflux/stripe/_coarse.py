@@ -62,8 +62,13 @@ class CoarseTrack:
 def _windowed_median(values: np.ndarray, ok: np.ndarray, window: int) -> np.ndarray:
     """Median of the `ok` entries in a centred sliding window; NaN where there are none."""
     half = window // 2
-    padded = np.pad(np.where(ok, values, np.inf), half, constant_values=np.inf)
-    windows = np.sort(np.lib.stride_tricks.sliding_window_view(padded, window), axis=1)
+    pad = np.full(half, np.inf)
+    padded = np.concatenate([pad, np.where(ok, values, np.inf), pad])
+    step = padded.strides[0]
+    windows = np.lib.stride_tricks.as_strided(
+        padded, (values.size, window), (step, step), writeable=False
+    )
+    windows = np.sort(windows, axis=1)
     count = np.count_nonzero(np.isfinite(windows), axis=1)
     mid = np.take_along_axis(windows, np.maximum((count - 1) // 2, 0)[:, None], axis=1)[:, 0]
     return np.where(count > 0, mid, np.nan)

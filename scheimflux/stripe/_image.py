@@ -43,6 +43,8 @@ def as_grey_image(image: Any, *, name: str = "image") -> np.ndarray:
 def _median(x: np.ndarray) -> float:
     """`float(np.median(x))` of a 1-D array without NaN, from one partial sort."""
     m = x.size // 2
+    if x.size == 0:
+        return float("nan")
     if x.size % 2:
         return float(np.partition(x, m)[m])
     part = np.partition(x, [m - 1, m])

@@ -105,13 +105,16 @@ def scan_direction(
             r = r * weight[where]
         e = float(np.sum(r[r > 0]))
         T += e * np.array([[eu * eu, eu * ev], [eu * ev, ev * ev]])
-    tr = float(np.trace(T))
-    if not tr > 0:
+    a, b, c = float(T[0, 0]), float(T[0, 1]), float(T[1, 1])
+    if not a + c > 0:
         return "vertical-scan", 90.0, 0.0
-    lam, vec = np.linalg.eigh(T)
-    coherence = float((lam[1] - lam[0]) / (lam[1] + lam[0]))
-    nu, nv = vec[:, 1]
-    angle = math.degrees(math.atan2(nv, nu)) % 180.0
+    # eigen-decomposition of the symmetric 2 x 2 tensor in closed form: eigenvalues
+    # (a + c) / 2 ± hypot((a - c) / 2, b), leading eigenvector at half the angle of
+    # (a - c, 2 b)
+    coherence = math.hypot(0.5 * (a - c), b) / (0.5 * (a + c))
+    theta = 0.5 * math.atan2(2.0 * b, a - c)
+    nu, nv = math.cos(theta), math.sin(theta)
+    angle = math.degrees(theta) % 180.0
     orientation = "vertical-scan" if abs(nv) >= abs(nu) else "horizontal-scan"
     return orientation, angle, coherence
 

@@ -90,21 +90,18 @@ def _line_points(rx, ry, rxx, rxy, ryy):
 
 
 def _hermite_root(p0, p1, m0, m1):
-    """Zero in [0, 1] of the cubic Hermite interpolant (values p, slopes m); p0, p1 bracket."""
+    """Zero in [0, 1] of the cubic Hermite interpolant (values p, slopes m); p0, p1 bracket.
+
+    Newton's method (3 steps) from the secant's zero on the cubic in power form
+    `h(x) = ((a3 x + a2) x + m0) x + p0`."""
+    a2 = 3.0 * (p1 - p0) - 2.0 * m0 - m1
+    a3 = 2.0 * (p0 - p1) + m0 + m1
+    b3, b2 = 3.0 * a3, 2.0 * a2
     x = np.clip(p0 / np.where(p0 != p1, p0 - p1, 1.0), 0.0, 1.0)
     for _ in range(3):
-        x2 = x * x
-        x3 = x2 * x
-        h = (
-            (2 * x3 - 3 * x2 + 1) * p0
-            + (x3 - 2 * x2 + x) * m0
-            + (-2 * x3 + 3 * x2) * p1
-            + (x3 - x2) * m1
-        )
-        dh = (6 * x2 - 6 * x) * p0 + (3 * x2 - 4 * x + 1) * m0 + (-6 * x2 + 6 * x) * p1
-        dh = dh + (3 * x2 - 2 * x) * m1
-        step = h / np.where(dh != 0, dh, 1.0)
-        x = np.clip(x - step, 0.0, 1.0)
+        h = ((a3 * x + a2) * x + m0) * x + p0
+        dh = (b3 * x + b2) * x + m0
+        x = np.clip(x - h / np.where(dh != 0, dh, 1.0), 0.0, 1.0)
     return x
 
 
@@ -193,16 +190,12 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
     cols = np.arange(n)
     nxk, nyk = _smooth_normal(nxk, nyk, found)
 
-    def along(i):  # n·∇r (background ramp removed) and its derivative along y, per column
-        at = i * n + cols
-        return (
-            nxk * (np.take(rx, at) - grad_x) + nyk * (np.take(ry, at) - grad_y),
-            nxk * np.take(rxy, at) + nyk * np.take(ryy, at),
-        )
-
-    g0, d0 = along(k)
-    gm, dm = along(np.maximum(k - 1, 0))
-    gp, dp = along(np.minimum(k + 1, k_rows - 1))
+    # n·∇r (background ramp removed) and its derivative along y at the rows k, k - 1
+    # and k + 1 of each column, in one (3, W) pass
+    at = np.stack([k, np.maximum(k - 1, 0), np.minimum(k + 1, k_rows - 1)]) * n + cols
+    g = nxk * (np.take(rx, at) - grad_x) + nyk * (np.take(ry, at) - grad_y)
+    dg = nxk * np.take(rxy, at) + nyk * np.take(ryy, at)
+    (g0, gm, gp), (d0, dm, dp) = g, dg
     rowk = np.take(rows, k * n + cols).astype(np.float64)
     # Fallback: project Steger's centre along the line onto the scan line.
     ny_safe = np.where(np.abs(nyk) > 0.2, nyk, np.copysign(0.2, nyk + 1e-300))
@@ -244,14 +237,12 @@ def _asymmetry(sample, lines: ScanLines, bg, grad_y, ny, s_total: float, reach: 
     y = np.where(ok, lines.y, lines.row)
     delta = np.minimum(s_total / np.maximum(np.abs(ny), 0.2), float(reach))
 
-    def at(pos):
-        lo = np.floor(pos)
-        f = pos - lo
-        lo = lo.astype(np.intp)
-        return (1 - f) * sample(lo, cols) + f * sample(lo + 1, cols)
-
-    centre = at(y)
-    plus, minus = at(y + delta), at(y - delta)
+    # the smoothed profile at y, y + δ and y - δ (linear interpolation), one (3, W) pass
+    pos = np.stack([y, y + delta, y - delta])
+    lo = np.floor(pos)
+    f = pos - lo
+    lo = lo.astype(np.intp)
+    centre, plus, minus = (1 - f) * sample(lo, cols) + f * sample(lo + 1, cols)
     height = centre - bg
     asym = (plus - minus) / np.where(height > 0, height, np.inf)
     return dataclasses.replace(lines, asym=np.where(ok & (height > 0), asym, np.nan), ny=ny)
