@@ -13,7 +13,11 @@ JPEG), scored against the exact centre lines: bias, RMS, false-point rate (> 1 p
 off), coverage, frames/s; without and with the laser-off frame, beside the plain
 full-frame Steger baseline on the same image.
 
+Stages (`--stages`): CPU time per stage of `extract_stripe` on the plain speed frames
+(one thread), from timers around the stage functions.
+
     python benchmarks/stripe.py [--frames N] [--quick] [--captures-only] [--views K]
+                                [--stages] [--speed-only]
 """
 
 from __future__ import annotations
@@ -86,19 +90,7 @@ def rate(fn, frames) -> tuple[float, float]:
 
 
 def speed_table(n_frames: int) -> None:
-    frames = [
-        render_stripe(
-            SHAPE,
-            lambda u, i=i: centre(u) + 7.3 * i,
-            width_px=5,
-            peak=0.5,
-            ambient="low",
-            noise_sigma=0.01,
-            seed=i,
-        )[0]
-        for i in range(min(n_frames, 8))
-    ]
-    frames = (frames * (n_frames // len(frames) + 1))[:n_frames]
+    frames = _speed_frames(n_frames)
     sigma = steger_sigma(5.0)
     previous = cv2.getNumThreads()
     results = {}
@@ -126,6 +118,77 @@ def speed_table(n_frames: int) -> None:
     print(f"{'method':<58} {'frames/s':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
     for name, (fps, cps) in results.items():
         print(f"{name:<58} {fps:>9.1f} {fps / base[0]:>6.1f}x {cps:>10.1f} {cps / base[1]:>6.1f}x")
+
+
+_STAGES = (
+    "downsample",
+    "estimate_noise",
+    "scan_direction",
+    "coarse_track",
+    "steger_band",
+    "refit_steps",
+    "consistent",
+    "link_segments",
+)
+
+
+def _speed_frames(n_frames: int) -> list[np.ndarray]:
+    frames = [
+        render_stripe(
+            SHAPE,
+            lambda u, i=i: centre(u) + 7.3 * i,
+            width_px=5,
+            peak=0.5,
+            ambient="low",
+            noise_sigma=0.01,
+            seed=i,
+        )[0]
+        for i in range(min(n_frames, 8))
+    ]
+    return (frames * (n_frames // len(frames) + 1))[:n_frames]
+
+
+def stage_table(n_frames: int) -> None:
+    """CPU time per stage (timers around the stage functions that `_extract` calls)."""
+    import scheimflux.stripe._extract as ex
+
+    frames = _speed_frames(n_frames)
+    spent = dict.fromkeys(_STAGES, 0.0)
+    original = {name: getattr(ex, name) for name in _STAGES}
+
+    def timed(name):
+        def call(*args, **kwargs):
+            t0 = time.process_time()
+            try:
+                return original[name](*args, **kwargs)
+            finally:
+                spent[name] += time.process_time() - t0
+
+        return call
+
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for f in frames[:2]:
+            extract_stripe(f, width_px=5)
+        for name in _STAGES:
+            setattr(ex, name, timed(name))
+        t0 = time.process_time()
+        for f in frames:
+            extract_stripe(f, width_px=5)
+        total = time.process_time() - t0
+    finally:
+        for name in _STAGES:
+            setattr(ex, name, original[name])
+        cv2.setNumThreads(previous)
+    n = len(frames)
+    print(f"\nstages of extract_stripe, 1600 x 1200 plain frames ({n}; CPU ms per frame)")
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    for name in _STAGES:
+        print(f"{name:<28} {1e3 * spent[name] / n:>7.3f} {100 * spent[name] / total:>5.1f}%")
+    rest = total - sum(spent.values())
+    print(f"{'rest (checks, assembly)':<28} {1e3 * rest / n:>7.3f} {100 * rest / total:>5.1f}%")
+    print(f"{'total':<28} {1e3 * total / n:>7.3f} ({n / total:.0f} frames per CPU-s)")
 
 
 def _baseline_centres(img: np.ndarray, orientation: str) -> np.ndarray:
@@ -231,7 +294,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="smaller accuracy images, 40 frames")
     parser.add_argument("--captures-only", action="store_true", help="only the capture table")
     parser.add_argument("--views", type=int, default=4, help="ray-traced board views")
+    parser.add_argument("--stages", action="store_true", help="only the per-stage CPU table")
+    parser.add_argument("--speed-only", action="store_true", help="only the speed table")
     args = parser.parse_args()
+    if args.stages:
+        stage_table(40 if args.quick else args.frames)
+        return
+    if args.speed_only:
+        speed_table(40 if args.quick else args.frames)
+        return
     if not args.captures_only:
         accuracy_table(args.quick)
         speed_table(40 if args.quick else args.frames)

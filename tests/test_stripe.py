@@ -71,6 +71,77 @@ def test_band_equals_full_frame():
     np.testing.assert_allclose(band.uv, wide.uv, atol=2e-3, equal_nan=True)
 
 
+@pytest.mark.parametrize(
+    "shape, orientation",
+    [((200, 40), "horizontal"), ((200, 70), "horizontal"), ((300, 200), "vertical")],
+)
+def test_band_equals_full_frame_narrow_and_transposed(shape, orientation):
+    # Images narrower than one band tile (64 scan lines + the filter margins: the tile
+    # is padded by replication) and a horizontal scan (the band is read through the
+    # transposed view of the image, no copy): the band's centres are the full frame's.
+    # The two read the same pixels through filters whose SIMD tails fall on different
+    # columns, so they agree to float32 rounding of the derivatives (~1e-7 px), not bit
+    # for bit; 1e-6 px is ten times that.
+    centre = (lambda s: 0.4 * shape[0] + 0.1 * s) if orientation == "horizontal" else None
+    if orientation == "vertical":
+        centre = lambda s: 0.4 * shape[1] + 0.1 * s  # noqa: E731
+    img, truth = render_stripe(
+        shape, centre, orientation=orientation, width_px=5, peak=0.5, ambient="low", seed=1
+    )
+    band = extract_stripe(img, width_px=5)
+    full = extract_stripe(img, width_px=5, band_px=None)
+    expect = "vertical-scan" if orientation == "horizontal" else "horizontal-scan"
+    assert band.orientation == full.orientation == expect
+    assert band.valid.sum() >= 0.8 * truth.valid.sum()
+    np.testing.assert_array_equal(band.valid, full.valid)
+    np.testing.assert_allclose(band.uv, full.uv, atol=1e-6, equal_nan=True)
+    axis = 1 if orientation == "horizontal" else 0
+    err = band.uv[band.valid, axis] - truth.uv[band.valid, axis]
+    assert np.sqrt(np.mean(err**2)) < 0.05
+
+
+def test_strongest_line_point_equals_exhaustive_search():
+    # `_select` tests the line-point condition first on each column's most negative
+    # eigenvalue only; the result must be that of testing every window pixel (strongest
+    # line point, first one on ties, `found` False where the column has none).
+    from scheimflux.stripe._steger import _line_points, _select
+
+    rng = np.random.default_rng(5)
+    k, n = 11, 400
+    win = [rng.normal(size=(k, n)).astype(np.float32) for _ in range(6)]
+    # a ridge in most columns (rxx/ryy strongly negative near row 5), noise elsewhere
+    win[5][3:8, : n // 2] -= np.float32(4.0)
+    win[2][:, ::7] *= np.float32(30.0)  # large first derivatives: no line point there
+    best, found, nx, ny, lam, t = _select(win, 1, 10)
+    nx_a, ny_a, lam_a, t_a, is_line = _line_points(*(a[1:10] for a in win[1:]))
+    score = np.where(is_line, -lam_a, -np.inf)
+    ref = np.argmax(score, axis=0)
+    cols = np.arange(n)
+    np.testing.assert_array_equal(best, ref + 1)
+    np.testing.assert_array_equal(found, np.isfinite(score[ref, cols]))
+    assert 0 < found.sum() < n  # both branches are exercised
+    for got, want in ((nx, nx_a), (ny, ny_a), (lam, lam_a), (t, t_a)):
+        np.testing.assert_array_equal(got, want[ref, cols])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.float32])
+@pytest.mark.parametrize("shape", [(96, 801), (64, 640), (9, 13)])
+def test_noise_estimate_is_the_median_of_second_differences(dtype, shape):
+    # Integer images take the median from a histogram of the integer second
+    # differences: it must equal the plain definition 1.4826 median|d2| / sqrt(6).
+    from scheimflux.stripe._image import estimate_noise
+
+    rng = np.random.default_rng(shape[1])
+    img = np.clip(rng.normal(900.0 if dtype != np.uint8 else 90.0, 2.5, shape), 0, None)
+    img = img.astype(dtype)
+    step = max(shape[0] // 8, 1)
+    rows = img[step // 2 :: step].astype(np.float64)
+    d2 = np.abs(rows[:, :-2] - 2.0 * rows[:, 1:-1] + rows[:, 2:])
+    expect = 1.4826 * float(np.median(d2)) / np.sqrt(6.0)
+    floor = 0.3 if np.issubdtype(dtype, np.integer) else 0.0
+    assert estimate_noise(img) == pytest.approx(max(expect, floor), rel=1e-6)
+
+
 @pytest.mark.parametrize("ambient", ["dark", "bright"])
 def test_centroid_reasonable(ambient):
     img, truth = render_stripe(

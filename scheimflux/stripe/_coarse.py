@@ -62,8 +62,24 @@ class CoarseTrack:
 def _windowed_median(values: np.ndarray, ok: np.ndarray, window: int) -> np.ndarray:
     """Median of the `ok` entries in a centred sliding window; NaN where there are none."""
     half = window // 2
-    padded = np.pad(np.where(ok, values, np.inf), half, constant_values=np.inf)
-    windows = np.sort(np.lib.stride_tricks.sliding_window_view(padded, window), axis=1)
+    n = values.size
+    if n >= 4 * half and ok.all():
+        # the common case: full windows away from the ends take a partial sort; the ends
+        # (windows reaching past them) are those of the general case on the end pieces
+        out = np.empty(n)
+        step = values.strides[0]
+        full = np.lib.stride_tricks.as_strided(
+            values, (n - 2 * half, window), (step, step), writeable=False
+        )
+        out[half : n - half] = np.partition(full, half, axis=1)[:, half]
+        out[:half] = _windowed_median(values[: 3 * half], ok[: 3 * half], window)[:half]
+        out[n - half :] = _windowed_median(values[-3 * half :], ok[-3 * half :], window)[-half:]
+        return out
+    pad = np.full(half, np.inf)
+    padded = np.concatenate([pad, np.where(ok, values, np.inf), pad])
+    step = padded.strides[0]
+    windows = np.lib.stride_tricks.as_strided(padded, (n, window), (step, step), writeable=False)
+    windows = np.sort(windows, axis=1)
     count = np.count_nonzero(np.isfinite(windows), axis=1)
     mid = np.take_along_axis(windows, np.maximum((count - 1) // 2, 0)[:, None], axis=1)[:, 0]
     return np.where(count > 0, mid, np.nan)
@@ -97,7 +113,7 @@ def coarse_track(
     if mask_small is not None:
         ridge = np.where(mask_small, ridge, 0.0).astype(np.float32)
 
-    idx = cv2.reduceArgMax(ridge, 0).reshape(-1).astype(np.intp)
+    idx = np.argmax(ridge, axis=0)  # first maximum per scan line
     cols = np.arange(ws)
     resp = ridge[idx, cols]
 
@@ -105,7 +121,8 @@ def coarse_track(
     # noise, plus the rounding of integer block means (the minimum of two such
     # differences has about the same spread).
     ridge_noise = math.hypot(0.354 * pixel_noise, 0.35 if integer_input else 0.0)
-    threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.ptp(small)), 1e-30))
+    lo_, hi_, _, _ = cv2.minMaxLoc(small)  # np.ptp in one pass (float32 difference)
+    threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.float32(hi_) - np.float32(lo_)), 1e-30))
     ok = resp > threshold
 
     tolerance = max(3.0 * width_px, 12.0)

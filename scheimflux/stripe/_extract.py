@@ -242,8 +242,10 @@ def _extract_one(
     if orientation == "vertical-scan":
         shape = img.shape
         stride_y, stride_x = img.shape[1], 1
+        scan_view = img
     else:
         shape = img.shape[::-1]
+        scan_view = img.T
         small = np.ascontiguousarray(small.T)
         if mask_small is not None:
             mask_small = np.ascontiguousarray(mask_small.T)
@@ -279,7 +281,7 @@ def _extract_one(
                 lines = steger_full(scan, w, coarse.centre, coarse.tolerance)
             else:
                 band = None if band_px == "auto" else int(band_px)
-                lines = steger_band(gather, shape, coarse.centre, w, band)
+                lines = steger_band(scan_view, coarse.centre, w, band)
             sigma = max(w / (2.0 * math.sqrt(3.0)), 0.7)
             # Std of sigma² G''*noise for white noise is sqrt(3 / (16 pi)) noise / sigma.
             noise_level = 8.0 * 0.2443 * noise / sigma
@@ -336,15 +338,15 @@ def _extract_one(
     # field changes it by a few per cent); a profile much narrower or wider than the
     # line's median is a distorted one (a step under it, a glint beside it).
     widths = lines.width[valid & ~saturated & np.isfinite(lines.width)]
+    med = float(np.median(widths)) if widths.size >= 8 else math.nan
     if widths.size >= 8 and method == "steger":
-        med = float(np.median(widths))
         wv = np.nan_to_num(lines.width, nan=0.0)
         valid &= saturated | ((wv >= WIDTH_RATIO[0] * med) & (wv <= WIDTH_RATIO[1] * med))
 
     y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
     if method == "steger" and widths.size >= 8:
         y_fit, valid, refit_sigma = refit_steps(
-            gather, shape, lines, valid, saturated, coarse, float(np.median(widths)), noise
+            gather, shape, lines, valid, saturated, coarse, med, noise
         )
     x = np.arange(shape[1], dtype=np.float64)
     y = np.where(valid, y_fit, np.nan)

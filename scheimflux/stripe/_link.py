@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._image import _median
+
 
 def link_segments(
     y: np.ndarray,
@@ -155,17 +157,17 @@ def consistent(
     # start from a robust straight line (median of the slopes between the two halves,
     # median intercept), so that a cluster of stray points cannot bend the cubic
     half_n = x.size // 2
-    slope = float(np.median((yx[half_n:2 * half_n] - yx[:half_n]) / (
+    slope = float(_median((yx[half_n:2 * half_n] - yx[:half_n]) / (
         xs[half_n:2 * half_n] - xs[:half_n])))
     r0 = yx - slope * xs
-    r0 = np.abs(r0 - np.median(r0))
-    seed = r0 <= max(20.0, 5.0 * 1.4826 * float(np.median(r0)))
+    r0 = np.abs(r0 - _median(r0))
+    seed = r0 <= max(20.0, 5.0 * 1.4826 * float(_median(r0)))
     V = np.stack([np.ones_like(xs), xs, xs * xs, xs * xs * xs], 1)
     for _ in range(2):
         Vs = V[seed]
         coef = np.linalg.solve(Vs.T @ Vs + 1e-12 * np.eye(4), Vs.T @ yx[seed])
         r = np.abs(yx - V @ coef)
-        seed = r <= max(1.0, 4.0 * 1.4826 * float(np.median(r[seed])))
+        seed = r <= max(1.0, 4.0 * 1.4826 * float(_median(r[seed])))
         if seed.sum() < 12:
             seed[:] = True
             break
@@ -201,7 +203,7 @@ def consistent(
         judged = valid & (count >= 6) & np.isfinite(r)
         if not judged.any():
             return keep & ~off_curve
-        spread = 1.4826 * float(np.median(r[judged & keep])) if (judged & keep).any() else 0.0
+        spread = 1.4826 * float(_median(r[judged & keep])) if (judged & keep).any() else 0.0
         thr = max(floor, factor * spread)
         # off the global curve and without neighbours to vouch for it: refused
         keep = valid & ~(judged & (r > thr)) & ~(off_curve & ~judged)

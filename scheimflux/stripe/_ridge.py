@@ -50,17 +50,6 @@ def ridge_response(small: np.ndarray, d: int, axis: int) -> np.ndarray:
     return out
 
 
-def _diagonal_response(small: np.ndarray, d: int, sign: int) -> np.ndarray:
-    out = np.zeros_like(small)
-    c = small[d:-d, d:-d]
-    if sign > 0:  # along (1, 1)
-        a, b = small[: -2 * d, : -2 * d], small[2 * d :, 2 * d :]
-    else:  # along (1, -1) in (u, v)
-        a, b = small[: -2 * d, 2 * d :], small[2 * d :, : -2 * d]
-    out[d:-d, d:-d] = np.minimum(c - a, c - b)
-    return out
-
-
 def scan_direction(
     small: np.ndarray, d: int, weight: np.ndarray | None, floor: float
 ) -> tuple[str, float, float]:
@@ -88,26 +77,44 @@ def scan_direction(
         d = max(2, int(round(d / 2)))
         floor = floor / 2.0  # block-mean noise halves
     dd = max(1, int(round(d / math.sqrt(2.0))))
-    responses = (
-        (ridge_response(small, d, 0), (0.0, 1.0)),
-        (ridge_response(small, d, 1), (1.0, 0.0)),
-        (_diagonal_response(small, dd, 1), (math.sqrt(0.5), math.sqrt(0.5))),
-        (_diagonal_response(small, dd, -1), (math.sqrt(0.5), -math.sqrt(0.5))),
+    # Interior responses only (outside it `ridge_response` gives 0, which `> floor`
+    # never passes): the same positive parts, in the same order, as the full arrays.
+    c, cd = small[d:-d], small[dd:-dd, dd:-dd]
+    interior = (
+        (np.minimum(c - small[: -2 * d], c - small[2 * d :]), (0.0, 1.0), np.s_[d:-d]),
+        (
+            np.minimum(small[:, d:-d] - small[:, : -2 * d], small[:, d:-d] - small[:, 2 * d :]),
+            (1.0, 0.0),
+            np.s_[:, d:-d],
+        ),
+        (
+            np.minimum(cd - small[: -2 * dd, : -2 * dd], cd - small[2 * dd :, 2 * dd :]),
+            (math.sqrt(0.5), math.sqrt(0.5)),
+            np.s_[dd:-dd, dd:-dd],
+        ),
+        (
+            np.minimum(cd - small[: -2 * dd, 2 * dd :], cd - small[2 * dd :, : -2 * dd]),
+            (math.sqrt(0.5), -math.sqrt(0.5)),
+            np.s_[dd:-dd, dd:-dd],
+        ),
     )
     T = np.zeros((2, 2))
-    for resp, (eu, ev) in responses:
+    for resp, (eu, ev), where in interior:
         r = resp - floor
         if weight is not None:
-            r = r * weight
+            r = r * weight[where]
         e = float(np.sum(r[r > 0]))
         T += e * np.array([[eu * eu, eu * ev], [eu * ev, ev * ev]])
-    tr = float(np.trace(T))
-    if not tr > 0:
+    a, b, c = float(T[0, 0]), float(T[0, 1]), float(T[1, 1])
+    if not a + c > 0:
         return "vertical-scan", 90.0, 0.0
-    lam, vec = np.linalg.eigh(T)
-    coherence = float((lam[1] - lam[0]) / (lam[1] + lam[0]))
-    nu, nv = vec[:, 1]
-    angle = math.degrees(math.atan2(nv, nu)) % 180.0
+    # eigen-decomposition of the symmetric 2 x 2 tensor in closed form: eigenvalues
+    # (a + c) / 2 ± hypot((a - c) / 2, b), leading eigenvector at half the angle of
+    # (a - c, 2 b)
+    coherence = math.hypot(0.5 * (a - c), b) / (0.5 * (a + c))
+    theta = 0.5 * math.atan2(2.0 * b, a - c)
+    nu, nv = math.cos(theta), math.sin(theta)
+    angle = math.degrees(theta) % 180.0
     orientation = "vertical-scan" if abs(nv) >= abs(nu) else "horizontal-scan"
     return orientation, angle, coherence
 

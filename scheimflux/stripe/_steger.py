@@ -64,35 +64,6 @@ def _derivative_images(img: np.ndarray, sigma: float) -> list[np.ndarray]:
 _ONE = np.ones((1, 1), np.float32)
 
 
-def _band_derivatives(comp: np.ndarray, crop: int, sigma: float) -> list[np.ndarray]:
-    """The smoothed band `comp` and r_x, r_y, r_xx, r_xy, r_yy of its rows
-    `crop .. -crop`, from three row passes and six column passes (nine 1-D filters
-    instead of the twelve of six separable filters). OpenCV's separable filter runs the
-    row pass first, then the column pass, both in float32; split into a row pass (column
-    kernel `[1]`) and a column pass (row kernel `[1]`) it gives the same numbers bit for
-    bit, so the band's centres are those of `_derivative_images` on the same rows."""
-    k0, k1, k2 = gaussian_kernels(sigma)
-    inner = comp[crop : comp.shape[0] - crop]
-
-    def rows(a, k):
-        return cv2.sepFilter2D(a, cv2.CV_32F, k, _ONE, borderType=cv2.BORDER_REPLICATE)
-
-    def cols(a, k):
-        return cv2.sepFilter2D(a, cv2.CV_32F, _ONE, k, borderType=cv2.BORDER_REPLICATE)
-
-    h0 = rows(comp, k0)
-    h0_inner = h0[crop : comp.shape[0] - crop]
-    h1, h2 = rows(inner, k1), rows(inner, k2)
-    return [
-        cols(h0, k0),
-        cols(h1, k0),
-        cols(h0_inner, k1),
-        cols(h2, k0),
-        cols(h1, k1),
-        cols(h0_inner, k2),
-    ]
-
-
 def _line_points(rx, ry, rxx, rxy, ryy):
     """Normal (nx, ny), eigenvalue λ, Taylor step t and the line-point test."""
     half_diff = 0.5 * (rxx - ryy)
@@ -119,43 +90,51 @@ def _line_points(rx, ry, rxx, rxy, ryy):
 
 
 def _hermite_root(p0, p1, m0, m1):
-    """Zero in [0, 1] of the cubic Hermite interpolant (values p, slopes m); p0, p1 bracket."""
+    """Zero in [0, 1] of the cubic Hermite interpolant (values p, slopes m); p0, p1 bracket.
+
+    Newton's method (3 steps) from the secant's zero on the cubic in power form
+    `h(x) = ((a3 x + a2) x + m0) x + p0`."""
+    a2 = 3.0 * (p1 - p0) - 2.0 * m0 - m1
+    a3 = 2.0 * (p0 - p1) + m0 + m1
+    b3, b2 = 3.0 * a3, 2.0 * a2
     x = np.clip(p0 / np.where(p0 != p1, p0 - p1, 1.0), 0.0, 1.0)
     for _ in range(3):
-        x2 = x * x
-        x3 = x2 * x
-        h = (
-            (2 * x3 - 3 * x2 + 1) * p0
-            + (x3 - 2 * x2 + x) * m0
-            + (-2 * x3 + 3 * x2) * p1
-            + (x3 - x2) * m1
-        )
-        dh = (6 * x2 - 6 * x) * p0 + (3 * x2 - 4 * x + 1) * m0 + (-6 * x2 + 6 * x) * p1
-        dh = dh + (3 * x2 - 2 * x) * m1
-        step = h / np.where(dh != 0, dh, 1.0)
-        x = np.clip(x - step, 0.0, 1.0)
+        h = ((a3 * x + a2) * x + m0) * x + p0
+        dh = (b3 * x + b2) * x + m0
+        x = np.clip(x - h / np.where(dh != 0, dh, 1.0), 0.0, 1.0)
     return x
 
 
 def _select(win: list[np.ndarray], lo: int, hi: int):
     """Strongest line point per column among the window rows `lo..hi-1`.
 
+    Line points are a subset of the pixels, so where a column's most negative λ is a
+    line point it is also the strongest line point: the full line-point test (normal,
+    Taylor step) runs on that one pixel per column, and on the whole window only in the
+    columns where it fails. Same result as testing every pixel.
+
     Returns `(k, found, nx, ny, lam, t)` per column (k: window row index).
     """
     _, rx, ry, rxx, rxy, ryy = win
-    cols = np.arange(rx.shape[1])
-    nx, ny, lam, t, is_line = _line_points(rx[lo:hi], ry[lo:hi], rxx[lo:hi], rxy[lo:hi], ryy[lo:hi])
-    score = np.where(is_line, -lam, -np.inf)
-    best = np.argmax(score, axis=0)
-    found = np.isfinite(score[best, cols])
-    return (
-        best + lo,
-        found,
-        nx[best, cols],
-        ny[best, cols],
-        lam[best, cols],
-        t[best, cols],
-    )
+    n = rx.shape[1]
+    cols = np.arange(n)
+    a, b, c = rxx[lo:hi], rxy[lo:hi], ryy[lo:hi]
+    half_diff = 0.5 * (a - c)
+    lam_all = 0.5 * (a + c) - np.sqrt(half_diff * half_diff + b * b)  # as `_line_points`
+    best = np.argmin(lam_all, axis=0) + lo
+    flat = best * n + cols
+    nx, ny, lam, t, found = _line_points(*(np.take(x, flat) for x in win[1:]))
+    miss = np.flatnonzero(~found)
+    if miss.size:
+        sub = [x[lo:hi, miss] for x in win[1:]]
+        nx_m, ny_m, lam_m, t_m, is_line = _line_points(*sub)
+        score = np.where(is_line, -lam_m, -np.inf)
+        k = np.argmax(score, axis=0)
+        j = np.arange(miss.size)
+        best[miss] = k + lo
+        found[miss] = np.isfinite(score[k, j])
+        nx[miss], ny[miss], lam[miss], t[miss] = nx_m[k, j], ny_m[k, j], lam_m[k, j], t_m[k, j]
+    return best, found, nx, ny, lam, t
 
 
 # Scan lines over which the line normal is median-filtered (odd).
@@ -179,8 +158,10 @@ def _smooth_normal(nx: np.ndarray, ny: np.ndarray, found: np.ndarray):
     phi = np.arctan2(nx * flip, ny * flip)  # in (-pi/2, pi/2]: the sign of n is free
     half = _NORMAL_WINDOW // 2
     if found.all():  # the common case: a partial sort (median) of full windows
-        padded = np.pad(phi, half, mode="edge")
-        win = np.lib.stride_tricks.sliding_window_view(padded, _NORMAL_WINDOW)
+        padded = np.concatenate([np.full(half, phi[0]), phi, np.full(half, phi[-1])])
+        win = np.lib.stride_tricks.as_strided(
+            padded, (phi.size, _NORMAL_WINDOW), (padded.strides[0],) * 2, writeable=False
+        )
         phi = np.partition(win, half, axis=1)[:, half]
         return np.sin(phi) * flip, np.cos(phi) * flip
     padded = np.pad(np.where(found, phi, np.inf), half, constant_values=np.inf)
@@ -209,16 +190,13 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
     cols = np.arange(n)
     nxk, nyk = _smooth_normal(nxk, nyk, found)
 
-    def along(i):  # n·∇r (background ramp removed) and its derivative along y, per column
-        return (
-            nxk * (rx[i, cols] - grad_x) + nyk * (ry[i, cols] - grad_y),
-            nxk * rxy[i, cols] + nyk * ryy[i, cols],
-        )
-
-    g0, d0 = along(k)
-    gm, dm = along(np.maximum(k - 1, 0))
-    gp, dp = along(np.minimum(k + 1, k_rows - 1))
-    rowk = rows[k, cols].astype(np.float64)
+    # n·∇r (background ramp removed) and its derivative along y at the rows k, k - 1
+    # and k + 1 of each column, in one (3, W) pass
+    at = np.stack([k, np.maximum(k - 1, 0), np.minimum(k + 1, k_rows - 1)]) * n + cols
+    g = nxk * (np.take(rx, at) - grad_x) + nyk * (np.take(ry, at) - grad_y)
+    dg = nxk * np.take(rxy, at) + nyk * np.take(ryy, at)
+    (g0, gm, gp), (d0, dm, dp) = g, dg
+    rowk = np.take(rows, k * n + cols).astype(np.float64)
     # Fallback: project Steger's centre along the line onto the scan line.
     ny_safe = np.where(np.abs(nyk) > 0.2, nyk, np.copysign(0.2, nyk + 1e-300))
     y = rowk + tk / ny_safe
@@ -233,7 +211,7 @@ def _evaluate(win: list[np.ndarray], rows: np.ndarray, selection, bg2, bg_off: i
     y = np.where(g0 == 0, rowk, y)
 
     strength = np.where(found, -lamk * sigma * sigma, 0.0)
-    height = r[k, cols] - bg
+    height = np.take(r, k * n + cols) - bg
     s2 = height / np.where(lamk < 0, -lamk, np.inf)
     width = FWHM_PER_SIGMA * np.sqrt(np.clip(s2 - sigma * sigma, 0.0, None))
     width = np.where(found & (s2 > 0), width, np.nan)
@@ -259,14 +237,12 @@ def _asymmetry(sample, lines: ScanLines, bg, grad_y, ny, s_total: float, reach: 
     y = np.where(ok, lines.y, lines.row)
     delta = np.minimum(s_total / np.maximum(np.abs(ny), 0.2), float(reach))
 
-    def at(pos):
-        lo = np.floor(pos)
-        f = pos - lo
-        lo = lo.astype(np.intp)
-        return (1 - f) * sample(lo, cols) + f * sample(lo + 1, cols)
-
-    centre = at(y)
-    plus, minus = at(y + delta), at(y - delta)
+    # the smoothed profile at y, y + δ and y - δ (linear interpolation), one (3, W) pass
+    pos = np.stack([y, y + delta, y - delta])
+    lo = np.floor(pos)
+    f = pos - lo
+    lo = lo.astype(np.intp)
+    centre, plus, minus = (1 - f) * sample(lo, cols) + f * sample(lo + 1, cols)
     height = centre - bg
     asym = (plus - minus) / np.where(height > 0, height, np.inf)
     return dataclasses.replace(lines, asym=np.where(ok & (height > 0), asym, np.nan), ny=ny)
@@ -315,57 +291,109 @@ def steger_full(img: np.ndarray, width_px: float, track, tolerance: float) -> Sc
     return _asymmetry(sample, res, bg, grad_y, ny, s_total, bg_off)
 
 
+def _tiles(scan: np.ndarray, centre: np.ndarray, half: int, r: int):
+    """The band's tiles of `_TILE` scan lines side by side in one image.
+
+    Tile `t` holds the scan-frame rows `top[t] .. top[t] + height - 1` (clipped to the
+    image: replicated rows) of the scan lines `start[t] .. start[t] + _TILE + 2 r - 1`:
+    its own `_TILE` scan lines and `r` more on each side for the filters. The first tile
+    starts at scan line 0 and the last one ends at the last scan line, so that the
+    filters' replicated border at the composite's left and right edges is the image's
+    own border. One fancy index of (height, n_tiles) row numbers into a sliding-window
+    view copies whole tile rows (no per-pixel index arrays).
+
+    **Returns:** `(comp, top, ccol)`: the composite (height, n_tiles (_TILE + 2 r))
+    float32, each tile's first row, and each scan line's column in the composite.
+    """
+    h, w = scan.shape
+    n_tiles = -(-w // _TILE)
+    tile_w = _TILE + 2 * r
+    tail = n_tiles * _TILE - w
+    padded = np.concatenate([centre, np.full(tail, centre[-1])]) if tail else centre
+    padded = padded.reshape(n_tiles, _TILE)
+    lo, hi = padded.min(axis=1), padded.max(axis=1)
+    top = lo - half
+    height = int((hi - lo).max()) + 2 * half + 1
+    if w < tile_w:  # narrower than one tile: replicate the last scan line
+        scan = np.concatenate([scan, np.repeat(scan[:, -1:], tile_w - w, axis=1)], axis=1)
+    start = np.clip(np.arange(n_tiles) * _TILE - r, 0, scan.shape[1] - tile_w)
+    rows = np.clip(top[None, :] + np.arange(height)[:, None], 0, h - 1)
+    sh, sw = scan.strides
+    view = np.lib.stride_tricks.as_strided(
+        scan, (h, scan.shape[1] - tile_w + 1, tile_w), (sh, sw, sw), writeable=False
+    )
+    comp = view[rows, start[None, :]].reshape(height, n_tiles * tile_w)
+    comp = comp.astype(np.float32, copy=False)
+    cols = np.arange(w)
+    tile = cols // _TILE
+    ccol = tile * tile_w + cols - start[tile]
+    return comp, top[tile], ccol
+
+
 def steger_band(
-    gather, shape: tuple[int, int], track: np.ndarray, width_px: float, band_px: int | None
+    scan: np.ndarray, track: np.ndarray, width_px: float, band_px: int | None
 ) -> ScanLines:
     """Steger in a band of ± `band_px` rows around `track` (W,), scan frame.
 
-    `gather(rows, cols)` returns the scan-frame image at integer index arrays (so that a
-    horizontal scan needs no transposed copy of the image). `band_px=None` picks the
-    smallest band that holds the search window and the background samples.
+    `scan` is the scan-frame image (H, W), a view of the image (for a horizontal scan its
+    transpose: no copy is made). `band_px=None` picks the smallest band that holds the
+    search window and the background samples.
+
+    The derivatives are needed only in a window of ± (`_SEARCH` + 1) rows around the
+    track. The row passes run on the tiles (they mix neighbouring scan lines); their
+    results are then gathered per scan line into that window (plus the filters'
+    reach) and the column passes run there: each output sees exactly the inputs it has
+    in the full frame, so band and full frame give the same centres.
     """
     sigma, r, bg_off, margin = _geometry(width_px, band_px)
     if band_px is None:
         margin = bg_off + _SEARCH + 1
-    h, w = shape
-    n_tiles = -(-w // _TILE)
+    h, w = scan.shape
     centre = np.rint(track).astype(np.intp)
-    padded = np.pad(centre, (0, n_tiles * _TILE - w), mode="edge").reshape(n_tiles, _TILE)
-    lo, hi = padded.min(axis=1), padded.max(axis=1)
-    half = margin + r
-    top = lo - half
-    height = int((hi - lo).max()) + 2 * half + 1
-    tile_w = _TILE + 2 * r
-    rows_idx = np.clip(top[None, :, None] + np.arange(height)[:, None, None], 0, h - 1)
-    cols_idx = np.arange(n_tiles)[:, None] * _TILE - r + np.arange(tile_w)[None, :]
-    cols_idx = np.clip(cols_idx, 0, w - 1)[None, :, :]
-    comp = gather(rows_idx, cols_idx).reshape(height, n_tiles * tile_w)
-    comp = comp.astype(np.float32, copy=False)
-    # The derivatives are only read within ± (search + 1) rows of the track.
+    comp, top_c, ccol = _tiles(scan, centre, margin + r, r)
     k_search = _SEARCH + 1
     crop = margin - k_search
-    smooth, *d = _band_derivatives(comp, crop, sigma)
+    k0, k1, k2 = gaussian_kernels(sigma)
 
-    cols = np.arange(w)
-    tile = cols // _TILE
-    ccol = tile * tile_w + r + (cols - tile * _TILE)
+    def rows_pass(a, k):
+        return cv2.sepFilter2D(a, cv2.CV_32F, k, _ONE, borderType=cv2.BORDER_REPLICATE)
+
+    def cols_pass(a, k):
+        return cv2.sepFilter2D(a, cv2.CV_32F, _ONE, k, borderType=cv2.BORDER_REPLICATE)
+
+    h0 = rows_pass(comp, k0)
+    smooth = cols_pass(h0, k0)
+    # the window rows of the derivatives' inputs: ± (k_search + r) around the track
+    n_cols = comp.shape[1]
+    inner = comp[crop : comp.shape[0] - crop]
+    reach = k_search + r
+    base = (centre - top_c - crop - reach) * n_cols + ccol
+    flat = base[None, :] + (np.arange(2 * reach + 1) * n_cols)[:, None]
+    g0 = np.take(h0[crop : comp.shape[0] - crop], flat)
+    g1 = np.take(rows_pass(inner, k1), flat)
+    g2 = np.take(rows_pass(inner, k2), flat)
+    keep = slice(r, r + 2 * k_search + 1)
+    d = [
+        cols_pass(g1, k0)[keep],
+        cols_pass(g0, k1)[keep],
+        cols_pass(g2, k0)[keep],
+        cols_pass(g1, k1)[keep],
+        cols_pass(g0, k2)[keep],
+    ]
     rows = centre[None, :] + np.arange(-k_search, k_search + 1)[:, None]
-    crow = rows - top[tile][None, :]
-    flat = crow * comp.shape[1] + ccol
-    win = [np.take(smooth, flat)]
-    flat_d = flat - crop * comp.shape[1]
-    win += [np.take(a, flat_d) for a in d]
+    flat_s = (rows - top_c[None, :]) * n_cols + ccol[None, :]
+    win = [np.take(smooth, flat_s)] + d
     # Background samples beside the strongest line point (as in the full frame).
     selection = _select(win, 1, 2 * k_search)
+    cols = np.arange(w)
     best_row = rows[selection[0], cols]
-    bg_crow = best_row[None, :] + np.array([-bg_off, bg_off])[:, None] - top[tile][None, :]
-    bg2 = np.take(smooth, bg_crow * comp.shape[1] + ccol)
+    bg_crow = best_row[None, :] + np.array([-bg_off, bg_off])[:, None] - top_c[None, :]
+    bg2 = np.take(smooth, bg_crow * n_cols + ccol)
     res, bg, grad_y, ny = _evaluate(win, rows, selection, bg2, bg_off, sigma)
     s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
-    top_c = top[tile]
 
     def sample(rr, cc):
         crow_s = np.clip(rr - top_c, 0, comp.shape[0] - 1)
-        return np.take(smooth, crow_s * comp.shape[1] + ccol[cc])
+        return np.take(smooth, crow_s * n_cols + ccol[cc])
 
     return _asymmetry(sample, res, bg, grad_y, ny, s_total, bg_off)

@@ -203,8 +203,19 @@ def _local_median(x: np.ndarray, ok: np.ndarray, values: np.ndarray, reach: floa
     out = np.full(x.size, float(np.median(vs)))
     lo = np.searchsorted(xs, x - reach)
     hi = np.searchsorted(xs, x + reach)
-    for i in np.flatnonzero(hi - lo >= 5):
-        out[i] = np.median(vs[lo[i] : hi[i]])
+    count = hi - lo
+    i = np.flatnonzero(count >= 5)
+    if i.size == 0:
+        return out
+    # all windows at once: each window's values (inf beyond its end) sorted along a row
+    span = np.arange(int(count[i].max()))
+    idx = lo[i, None] + span[None, :]
+    win = np.where(span[None, :] < count[i, None], vs[np.minimum(idx, vs.size - 1)], np.inf)
+    win.sort(axis=1)
+    c = count[i]
+    a = np.take_along_axis(win, ((c - 1) // 2)[:, None], axis=1)[:, 0]
+    b = np.take_along_axis(win, (c // 2)[:, None], axis=1)[:, 0]
+    out[i] = np.where(c % 2 == 1, a, (a + b) / 2)
     return out
 
 
