@@ -32,6 +32,13 @@ from ._linear import (
 )
 from ._lm import BlockLevenbergMarquardt, result_message
 
+#: XLA compiler options for programs a calibration runs once or a few times (a solve's
+#: start and end, the residual summaries, the axis warning): LLVM's backend at -O0 and
+#: without its expensive passes. Their run is milliseconds either way, their compile
+#: time is most of a cold calibration's (docs/compile-time.md); the Levenberg–Marquardt
+#: loop, run for every step, keeps XLA's default optimisation.
+ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
 
 class RankDeficientError(ValueError):
     """The data cannot determine the free parameters together (a null direction of the
@@ -269,7 +276,7 @@ def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mas
     return BlockLevenbergMarquardt(structure, mask, rtol, atol)
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _normal_at(x, args, structure: BlockStructure, z):
     """Residual, block normal matrix, and `J z` twice to check the structure against:
     from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
@@ -280,7 +287,7 @@ def _normal_at(x, args, structure: BlockStructure, z):
     return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _normal_detect(x, args, global_cols, local_cols, probes, z):
     """`_normal_at` with the rows' blocks found in the same program.
 
