@@ -88,3 +88,46 @@ def test_one_shot_program_equals_default_optimisation(rig):
     with jax.disable_jit():
         c = np.asarray(corner_errors_px(params, data))
     np.testing.assert_allclose(a, c, rtol=1e-12, atol=1e-9)
+
+
+def _toy_problem(V, K, seed):
+    from test_linear import _Toy, _toy_residuals
+
+    rng = np.random.default_rng(seed)
+    truth = _Toy(jnp.array([0.4, 1.1, -0.2]), jnp.asarray(rng.normal(size=(V, 2))))
+    a = jnp.asarray(rng.normal(size=(V, K, 3)))
+    y = _toy_residuals(truth, (a, jnp.zeros((V, K)))).reshape(V, K)  # residual pred - y
+    start = _Toy(truth.g + 0.1, truth.board_poses + 0.1)
+    return _toy_residuals, truth, start, (a, y)
+
+
+def test_least_squares_compiles_only_solver_programs_per_shape():
+    """A solve of a new shape lowers the solver's programs and nothing else: the host-side
+    work is NumPy (an eager jax.numpy call would be one more program per shape)."""
+    from scheimflux.calibrate._solve import _split_host, least_squares
+
+    fn, _, start, data = _toy_problem(4, 6, 5)
+    least_squares(fn, start, data, blocks="board_poses")  # shape-independent programs
+    fn, truth, start, data = _toy_problem(5, 7, 6)  # shapes of no other test
+    spec = free_spec(start, ())
+    x_host, unravel_h, _ = _split_host(start, spec)
+    x_dev, unravel_d, _ = split(start, spec)
+    np.testing.assert_array_equal(x_host, np.asarray(x_dev))  # the same state vector
+    assert unravel_h == unravel_d and x_host.dtype == np.float64
+    names = []
+
+    def listen(event, duration, **kw):
+        # lowering: once per top-level program (compiled or read from the cache); the
+        # jits nested inside a traced program are not lowered on their own
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            names.append(str(kw.get("fun_name")).removeprefix("jit(").removesuffix(")"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        fit = least_squares(fn, start, data, blocks="board_poses")
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert fit.converged and fit.rms < 1e-8  # noise-free data: the truth is recovered
+    np.testing.assert_allclose(np.asarray(fit.params.g), np.asarray(truth.g), atol=1e-7)
+    assert "least_squares" in names and "_normal_detect" in names, names
+    assert set(names) <= {"least_squares", "_normal_detect", "_normal_at"}, names
