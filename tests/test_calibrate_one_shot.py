@@ -68,6 +68,7 @@ def test_axis_gradients_match_central_differences(rig):
     assert err.max() < 1e-5, f"worst column {int(err.max(axis=0).argmax())}: {err.max():.2e}"
 
 
+@pytest.mark.slow  # simulates a scene and compiles the summary program twice (~107 s under load 15)
 def test_one_shot_program_equals_default_optimisation(rig):
     obs, _ = simulate_observations(rig, Checkerboard(6, 5, 0.4), n_views=3, seed=2)
     data = make_data(obs, sigma_corner_px=0.03)
