@@ -27,7 +27,7 @@ from ._init import (
 )
 from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
-from ._solve import Fit, least_squares
+from ._solve import ONE_SHOT, Fit, least_squares
 
 MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
 # the models built on the thick lens (nominal start, pixel pitch, distortion first)
@@ -264,7 +264,7 @@ def calibrate_camera(
 
 # Compiled residual evaluation for the summaries (eager evaluation would dispatch every
 # operation of the distortion's fixed point separately).
-_corner_errors_jit = eqx.filter_jit(corner_errors_px)
+_corner_errors_jit = eqx.filter_jit(corner_errors_px, compiler_options=ONE_SHOT)
 
 
 def _corner_errors(params, data: CalibrationData) -> np.ndarray:
@@ -279,7 +279,7 @@ def _rms_px(params, data: CalibrationData) -> float:
     return float(np.sqrt(np.sum(r**2) / (2 * n)))
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _directions(camera, uv):
     return camera.backproject(uv).direction
 

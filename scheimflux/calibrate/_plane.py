@@ -16,9 +16,10 @@ from ..geometry._transforms import Pose
 from ..io._observations import Observations
 from ._gates import plane_conditioning
 from ._model import stripe_residuals
+from ._solve import ONE_SHOT
 
 # Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`).
-_stripe_residuals_jit = eqx.filter_jit(stripe_residuals)
+_stripe_residuals_jit = eqx.filter_jit(stripe_residuals, compiler_options=ONE_SHOT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +36,7 @@ class PlaneFit:
         return float(np.sqrt(np.mean(self.residuals_mm**2)))
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _onto_planes(camera, normals, uv):
     """Each pixel's ray meets its own plane `n · X = 1` (rows of `normals`)."""
 

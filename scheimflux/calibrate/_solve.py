@@ -32,6 +32,13 @@ from ._linear import (
 )
 from ._lm import BlockLevenbergMarquardt, result_message
 
+#: XLA compiler options for programs a calibration runs once or a few times (a solve's
+#: start and end, the residual summaries, the axis warning): LLVM's backend at -O0 and
+#: without its expensive passes. Their run is milliseconds either way, their compile
+#: time is most of a cold calibration's (docs/compile-time.md); the Levenberg–Marquardt
+#: loop, run for every step, keeps XLA's default optimisation.
+ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
 
 class RankDeficientError(ValueError):
     """The data cannot determine the free parameters together (a null direction of the
@@ -248,6 +255,15 @@ def split(params, spec):
     return x0, _Unravel(free), static
 
 
+def _split_host(params, spec):
+    """[`split`][] with the state vector as a NumPy array (no device program)."""
+    free, static = eqx.partition(params, spec)
+    leaves = [np.asarray(x) for x in jax.tree.leaves(free)]
+    dtype = np.result_type(*leaves) if leaves else np.float64
+    x0 = np.concatenate([np.ravel(x).astype(dtype) for x in leaves] or [np.zeros(0, dtype)])
+    return x0, _Unravel(free), static
+
+
 def jacobian(fn: Callable, params, data, spec):
     """Jacobian of `fn(params, data)` w.r.t. the free parameters (physical units)."""
     x0, unravel, static = split(params, spec)
@@ -269,7 +285,7 @@ def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mas
     return BlockLevenbergMarquardt(structure, mask, rtol, atol)
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _normal_at(x, args, structure: BlockStructure, z):
     """Residual, block normal matrix, and `J z` twice to check the structure against:
     from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
@@ -280,7 +296,7 @@ def _normal_at(x, args, structure: BlockStructure, z):
     return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _normal_detect(x, args, global_cols, local_cols, probes, z):
     """`_normal_at` with the rows' blocks found in the same program.
 
@@ -322,8 +338,9 @@ def _normal_equations(x, args, layout, z):
     global_cols, local_cols = layout
     n = x.shape[0]
     if local_cols.shape[1]:
-        gc, lc = jnp.asarray(global_cols, jnp.int32), jnp.asarray(local_cols, jnp.int32)
-        probes = jnp.asarray(row_probes(local_cols, n), x.dtype)
+        gc = jax.device_put(np.asarray(global_cols, np.int32))
+        lc = jax.device_put(np.asarray(local_cols, np.int32))
+        probes = jax.device_put(np.asarray(row_probes(local_cols, n), x.dtype))
         r, H, Bz, Jz, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
         if bool(ok):
             return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, Bz, Jz
@@ -389,71 +406,76 @@ def least_squares(
     if spec is None:
         spec = free_spec(params, freeze)
     t0 = time.perf_counter()
-    x0, unravel, static = split(params, spec)
+    # Host-side work (the state vector, checks, scaling, the solution's pytree) is
+    # NumPy: every eager jax.numpy call on a new shape is one more XLA program to trace
+    # and compile (docs/compile-time.md); the device sees the solver programs only.
+    x0_h, unravel, static = _split_host(params, spec)
+    x0 = jax.device_put(x0_h)
     args0 = (fn, unravel, static, data)
     layout = block_layout(unravel, blocks)
-    z = jnp.asarray(np.random.default_rng(1).standard_normal(x0.shape), x0.dtype)
+    z = jax.device_put(np.random.default_rng(1).standard_normal(x0_h.shape).astype(x0_h.dtype))
     structure, r0, H, Bz, Jz = _normal_equations(x0, args0, layout, z)
-    if not bool(jnp.all(jnp.isfinite(H))):
+    r0, H, Bz, Jz = (np.asarray(a) for a in (r0, H, Bz, Jz))
+    if not np.all(np.isfinite(H)):
         raise ValueError("the Jacobian is not finite at the initial parameters")
-    if not bool(jnp.all(jnp.isfinite(r0))):
-        bad = int(jnp.sum(~jnp.isfinite(r0)))
+    if not np.all(np.isfinite(r0)):
+        bad = int(np.sum(~np.isfinite(r0)))
         raise ValueError(f"{bad} residuals are not finite at the initial parameters")
     # the compressed Jacobian and the rows' blocks (from which JᵀJ is assembled) must
     # rebuild J z for a random z exactly (to rounding): a row given to the wrong block
     # would not
-    if not np.allclose(Bz, Jz, rtol=1e-8, atol=1e-10 * float(jnp.max(jnp.abs(Jz)))):
+    if not np.allclose(Bz, Jz, rtol=1e-8, atol=1e-10 * float(np.max(np.abs(Jz)))):
         raise RuntimeError("internal error: the block Jacobian does not match J")
-    col = jnp.sqrt(jnp.diag(H))
-    scale = jnp.where(col > 0, 1.0 / jnp.where(col > 0, col, 1.0), 1.0)
-    free, spec_free = np.ones(x0.shape, bool), spec
+    col = np.sqrt(np.diag(H))
+    scale = np.where(col > 0, 1.0 / np.where(col > 0, col, 1.0), 1.0)
+    free, spec_free = np.ones(x0_h.shape, bool), spec
     if hold:
         free, spec_free = _held(params, spec, hold)
-        scale = jnp.where(jnp.asarray(free), scale, 0.0)
-    args = (fn, unravel, static, data, x0, scale)
-    y0 = jnp.zeros_like(x0)
+        scale = np.where(free, scale, 0.0)
+    args = (fn, unravel, static, data, x0, jax.device_put(scale))
     sol = optx.least_squares(
         _scaled,
-        levenberg_marquardt(structure, rtol, atol, jnp.asarray(free, x0.dtype)),
-        y0,
+        levenberg_marquardt(structure, rtol, atol, jax.device_put(free.astype(x0_h.dtype))),
+        jax.device_put(np.zeros_like(x0_h)),
         args,
         max_steps=max_steps,
         throw=False,
     )
-    y = sol.value
     # residuals and JᵀJ at the solution (for the covariance): the start's program again
     # (rows re-detected; the start's structure if they no longer split the same way)
-    x_end = x0 + y * scale
+    x_end_h = x0_h + np.asarray(sol.value) * scale
+    x_end = jax.device_put(x_end_h)
     end = _normal_equations(x_end, args0, layout if structure.n_blocks else structure, z)
     if end[0].n_blocks != structure.n_blocks:
         end = _normal_equations(x_end, args0, structure, z)
     _, r, H_end, _, _ = end
+    r_h = np.asarray(r)
     H_end = np.asarray(H_end)[np.ix_(free, free)]
     if check_rank:
         # judged at the solution: a degeneracy only at the start (a sensor tilt or the
         # rational terms at exactly zero, where their derivatives are those of the
         # principal point and of k1) is not one of the data; at the start only if the
         # solve broke down
-        H_start = np.asarray(H)[np.ix_(free, free)]
+        H_start = H[np.ix_(free, free)]
         _check_rank(H_end if np.all(np.isfinite(H_end)) else H_start, params, spec_free)
-    r.block_until_ready()
     elapsed = time.perf_counter() - t0
-    ok = sol.result == optx.RESULTS.successful and bool(jnp.all(jnp.isfinite(r)))
-    message = result_message(sol.result, bool(jnp.all(jnp.isfinite(r))))
+    finite = bool(np.all(np.isfinite(r_h)))
+    ok = bool(sol.result == optx.RESULTS.successful) and finite
+    message = result_message(sol.result, finite)
     fit = Fit(
-        params=eqx.combine(unravel(x_end), static),
+        params=eqx.combine(jax.device_put(unravel(x_end_h)), static),
         converged=bool(ok),
         message=message,
         steps=int(sol.stats["num_steps"]),
         residuals=r,
-        initial_cost=float(0.5 * jnp.sum(r0**2)),
-        cost=float(0.5 * jnp.sum(r**2)),
+        initial_cost=float(0.5 * np.sum(r0**2)),
+        cost=float(0.5 * np.sum(r_h**2)),
         time_s=elapsed,
         free_mask=spec_free,
-        scale=scale[jnp.asarray(np.flatnonzero(free))],
+        scale=jax.device_put(scale[np.flatnonzero(free)]),
         normal_matrix=H_end,
         labels=tuple(parameter_labels(params, spec_free)),
-        n_observations=int(np.count_nonzero(np.asarray(r))),
+        n_observations=int(np.count_nonzero(r_h)),
         result=sol.result,
         stats=dict(sol.stats),
     )

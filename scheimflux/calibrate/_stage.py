@@ -25,7 +25,7 @@ from ._model import (
     make_data,
 )
 from ._plane import _pad_pow2
-from ._solve import Fit, NotConvergedError, free_spec, least_squares
+from ._solve import ONE_SHOT, Fit, NotConvergedError, free_spec, least_squares
 from ._stage_axis import (
     _fit_cylinder_axis,
     _Sections,
@@ -34,7 +34,7 @@ from ._stage_axis import (
 )
 
 # Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`).
-_gauge_residuals_jit = eqx.filter_jit(gauge_residuals)
+_gauge_residuals_jit = eqx.filter_jit(gauge_residuals, compiler_options=ONE_SHOT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +76,7 @@ class StageCalibration:
 
 
 # Backprojection onto the laser plane, compiled once per (padded) number of pixels.
-_laser_points_jit = eqx.filter_jit(_laser_points_safe)
+_laser_points_jit = eqx.filter_jit(_laser_points_safe, compiler_options=ONE_SHOT)
 
 
 def _gauge_points(camera, plane: LaserPlane, frames) -> tuple[np.ndarray, np.ndarray]:
