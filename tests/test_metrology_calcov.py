@@ -8,6 +8,7 @@ match the spread of the estimates over fresh noise; the pooled `s² (JᵀJ)⁻¹
 """
 
 import numpy as np
+import pytest
 
 from scheimflux.calibrate._covariance import covariance_from_jacobian
 from scheimflux.metrology._calcov import sandwich_covariance
@@ -59,6 +60,7 @@ def test_equal_noise_gives_the_pooled_covariance():
     assert c2 == [120, 400] and abs(p2 - pooled) < 1e-12
 
 
+@pytest.mark.slow  # a calibration compile: 513 s alone under load 18 on 2 cores
 def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
     """On a ray-traced calibration (the 4-view scene other tests calibrate too, so its
     compiled programs are shared): the corner and board-stripe groups cover the joint
