@@ -98,3 +98,19 @@ def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
     assert np.max(np.abs(cov - d.covariance) / norm) < 1e-6
     # the groups differ: the board stripes scatter far less than their assumed σ
     assert gc.variance_factors["stripes"] < 0.5 * gc.variance_factors["corners"]
+    # measure_stripes' calibration term is G Σ Gᵀ with the chosen covariance
+    from scheimflux.metrology import Steps, measure_stripes
+    from scheimflux.simulate import step_gauge
+
+    prof = step_gauge(paper_rig(refine=False), (1.5,), step_px=6.0)[0]
+    terms = {}
+    for how in ("groups", "pooled", gc):
+        m = measure_stripes(cal, prof.px_true, Steps(), labels=prof.labels, sigma_px=0.05,
+                            diag=d, calibration_covariance=how, frozen_sigma=None)
+        G = np.asarray(m.sensitivity["d_values"])[0]
+        idx = [d.labels.index(lab) for lab in m.sensitivity["labels"]]
+        S = (d.covariance if isinstance(how, str) and how == "pooled" else gc.covariance)
+        np.testing.assert_allclose(m.budget["calibration"][0] ** 2,
+                                   G @ S[np.ix_(idx, idx)] @ G, rtol=1e-9)
+        terms[how if isinstance(how, str) else "given"] = m.budget["calibration"][0]
+    assert terms["groups"] == terms["given"]
