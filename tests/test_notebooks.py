@@ -47,7 +47,11 @@ def _execute(path, km):
         nb, km=km, timeout=1800, kernel_name="python3",
         resources={"metadata": {"path": os.path.dirname(path)}},
     )
-    client.execute()
+    try:
+        client.execute()
+    finally:  # the kernel stays for the next notebook; this client's sockets do not
+        if client.kc is not None:
+            client.kc.stop_channels()
 
 
 def test_notebook_outputs_are_stripped():
