@@ -1,6 +1,11 @@
 """Metrology: differentiable geometric fits (plane, circle, cylinder, sphere, steps,
 distance) of reconstructed points, and measured values with their GUM uncertainty."""
 
+from ._calcov import (
+    GroupCovariance as GroupCovariance,
+    group_covariance as group_covariance,
+    sandwich_covariance as sandwich_covariance,
+)
 from ._fits import (
     CircleFit as CircleFit,
     CylinderFit as CylinderFit,

@@ -99,6 +99,37 @@ def _joint_covariance(cal, diag, source):
     return diag
 
 
+def _calibration_covariance(cal, diag, how):
+    """`(Σ (p, p) in diag's labels, a note)` for the calibration term."""
+    from ._calcov import GroupCovariance, group_covariance
+
+    if isinstance(how, str) and how == "pooled":
+        return diag.covariance, f"variance factor {diag.variance_factor:.3g} pooled"
+    if isinstance(how, str) and how == "groups":
+        if "joint" not in cal.fits:
+            # a sequential estimate is not the joint optimum: its residuals per group are
+            # no noise estimate; diagnostics scales by the camera solve's s² instead
+            return diag.covariance, (
+                f"variance factor {diag.variance_factor:.3g} of the camera solve "
+                "(sequential calibration)"
+            )
+        try:
+            how = group_covariance(cal)
+        except ValueError as err:  # residual groups not known for this solve
+            return diag.covariance, (
+                f"variance factor {diag.variance_factor:.3g} pooled ({err})"
+            )
+    if not isinstance(how, GroupCovariance):
+        raise ValueError(
+            "calibration_covariance must be 'groups', 'pooled' or a GroupCovariance, got "
+            f"{how!r}"
+        )
+    if how.covariance.shape != diag.covariance.shape:
+        raise ValueError("calibration_covariance does not match the calibration's parameters")
+    factors = ", ".join(f"{g} {v:.3g}" for g, v in how.variance_factors.items())
+    return how.covariance, f"variance factors {factors}"
+
+
 def measure_stripes(
     cal,
     uv,
@@ -110,6 +141,7 @@ def measure_stripes(
     sigma_px: float | None = None,
     diag=None,
     frozen_sigma: dict | str | None = "nominal",
+    calibration_covariance="groups",
     source: str = "the calibration",
 ) -> Measurement:
     """Measure a shape from stripe pixels with the full GUM budget.
@@ -135,6 +167,12 @@ def measure_stripes(
       held fixed, `{"camera.f": 0.3, ...}`, propagated with the calibration re-solved to
       first order (`_frozen.py`); `"nominal"` (default): `nominal_tolerances(cal)`, the
       rounding of the nominal f (1 mm) and tilt (1°); None: not evaluated.
+    - `calibration_covariance`: `"groups"` (default): the calibration parameters'
+      covariance with one variance factor per kind of residual (corners, board stripes,
+      gauge scan; [`group_covariance`][], `_calcov.py`), or a precomputed
+      [`GroupCovariance`][] of `cal` (to measure many times with one calibration);
+      `"pooled"`: `diag.covariance`, one variance factor for all residuals (understates
+      what the corners determine when the stripe residuals scatter less than their σ).
 
     **Returns:** a [`Measurement`][] with `sensitivity` (∂values/∂θ). **Raises:**
     `ValueError` (one line) for a calibration without laser plane, stage or covariance,
@@ -180,7 +218,8 @@ def measure_stripes(
     fit, gX, normals = _checked_fit(shape, X, lab)
 
     G_theta, G_uv, J_uv = np.asarray(G_theta), np.asarray(G_uv), np.asarray(J_uv)
-    S = diag.covariance[np.ix_(idx, idx)]
+    S_all, cov_note = _calibration_covariance(cal, diag, calibration_covariance)
+    S = S_all[np.ix_(idx, idx)]
     terms = {"calibration": G_theta @ S @ G_theta.T}
     notes = []
     held = [p for p in tuple(cal.freeze) if p.split(".")[0] in ("camera", "plane", "stage")]
@@ -239,7 +278,7 @@ def measure_stripes(
             )
     notes.append(
         f"calibration: covariance of {len(idx)} {'/'.join(p.rstrip('.') for p in prefixes)} "
-        f"parameters ({diag.block} solve, variance factor {diag.variance_factor:.3g})"
+        f"parameters ({diag.block} solve, {cov_note})"
     )
     sens = {"labels": [diag.labels[i] for i in idx], "d_values": G_theta}
     return _measurement(shape, fit, terms, stats, sens, notes)
