@@ -132,10 +132,11 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     assert v.source == ((f"view_0.{ext}",) if layout == "single" else
                         (f"view_0_board.{ext}", f"view_0_stripe.{ext}"))  # fmt: skip
     # in a grey single image the laser line shifts the centres of the circles it crosses
-    # by up to 3 px: those leave the local grid and are rejected (one row of 7 of 42);
-    # every point kept is accurate
+    # by up to 3 px: those leave the local grid and are rejected (one row of 7 of 42); a
+    # colour JPEG keeps some of the line in every channel: the points within its reach
+    # go too (a row or two); every point kept is accurate
     m = v.corner_mask
-    assert m.all() if (layout == "pair" or colour) else m.mean() >= 0.75
+    assert m.all() if layout == "pair" else m.mean() >= 0.6, m.mean()
     assert np.hypot(*(v.corners_px[m] - corners[0][m]).T).max() <= tol
     line = truth.stripe_px[0]
     span = np.ptp(line[:, 0])
@@ -243,6 +244,30 @@ def test_single_grey_points_near_laser_dropped(cam, tmp_path, target):
     # at most the two rows next to the line go (a row pitch is ~68 px, the reach ~30 px)
     rows = len(np.unique(target.points_mm[:, 1]))
     assert kept >= 3 * len(corners) * (rows - 2) / rows
+
+
+def test_colour_jpeg_points_near_laser_dropped(cam, tmp_path):
+    """A colour JPEG of board and red line: JPEG's half-resolution chroma leaves some of
+    the line in the channels it is not in (`_laser.py`), and the corners it passes near
+    are displaced in the channel minimum (measured 0.16 px at 26 px, 0.57 px at 13 px
+    from the line; 0.03 px in the same image as PNG). They are dropped; every corner kept
+    is within 0.1 px of the truth (3x the PNG's worst corner, below the smallest
+    displacement measured)."""
+    target = Checkerboard(7, 6, 0.2)
+    kept = 0
+    for i, frac in enumerate((0.1, 0.3)):
+        rig, truth, corners = _scene_at(cam, target, frac)
+        folder = tmp_path / str(i)
+        write_scene_images(folder, rig, target, truth, layout="single", colour=True, ext="jpg",
+                           seed=1)  # fmt: skip
+        obs, report = detect_captures(folder, target)
+        v = obs.views[0]
+        m = v.corner_mask
+        assert np.hypot(*(v.corners_px - corners)[m].T).max() < 0.1
+        assert any("colour JPEG single image" in n for n in report.notes)
+        kept += m.sum()
+    # at most the two rows next to the line go (a row pitch is ~68 px, the reach ~48 px)
+    assert kept >= 2 * len(corners) * (6 - 2) / 6
 
 
 def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):

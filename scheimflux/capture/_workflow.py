@@ -25,7 +25,7 @@ from ..targets._circles import CircleGrid
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
-from ._laser import laser_in_board, near_laser, off_local_grid, target_holes
+from ._laser import JPEG_BLOCK_PX, laser_in_board, near_laser, off_local_grid, target_holes
 from ._region import board_region, board_stripe, laser_free
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
@@ -78,6 +78,11 @@ def _default_margin(uv: np.ndarray, target: Target) -> float:
     span_px = float(np.ptp(uv[ok], axis=0).max())
     pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
     return max(3.0, 0.5 * pitch * span_px / max(span_mm, 1e-12))
+
+
+def _is_jpeg(path: str) -> bool:
+    """Whether the file is stored as JPEG (by its name: `.jpg`, `.jpeg`, any case)."""
+    return os.path.splitext(os.fspath(path))[1].lower() in (".jpg", ".jpeg")
 
 
 def _too_few(res, target, min_points: int) -> str:
@@ -215,10 +220,15 @@ def detect_captures(
                 continue
             else:
                 # one grey image of target and line (no laser-off image): keep the line
-                # out of the dots, and the points out of the line's reach (_laser.py)
-                shared = cv.layout == "single" and off is None and laser_in_board(image)
+                # out of the dots, and the points out of the line's reach (_laser.py);
+                # a colour JPEG keeps some of the line in every channel (_laser.py): its
+                # points are kept out of the line's reach too, grown by a chroma block
+                single = cv.layout == "single" and off is None
+                grey = single and laser_in_board(image)
+                jpeg = _is_jpeg(cv.board)
+                shared = grey or (single and jpeg)
                 holes = None
-                if shared:
+                if grey:
                     grow = _hole_margin(corners, target, stripe_width_px)
                     holes = target_holes(target, corners, shape, margin_px=grow)
                 try:
@@ -239,12 +249,15 @@ def detect_captures(
                         if stripe_width_px is not None:
                             w = max(w, float(stripe_width_px))
                         hit |= near_laser(target, corners, stripe_uv, w,
-                                          orientation=stripe_res.orientation)  # fmt: skip
+                                          orientation=stripe_res.orientation,
+                                          extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
                     if hit.any():
                         corners = corners.copy()
                         corners[hit] = np.nan
-                        note(cv, f"{int(hit.sum())} point(s) within the laser line's reach "
-                                 "or off their local grid dropped (grey single image)")  # fmt: skip
+                        kind = "grey" if grey else "colour JPEG"
+                        note(cv, f"{int(hit.sum())} point(s) within the laser line's "
+                                 f"reach or off their local grid dropped ({kind} single "
+                                 "image)")  # fmt: skip
                         res = DetectionResult(corners, True, res.message)
                         reason = _too_few(res, target, min_points)
                         if reason:
