@@ -40,7 +40,14 @@ import numpy as np
 from ..targets._charuco import CharucoBoard
 from ..targets._circles import CircleGrid
 
-__all__ = ["fill_holes", "laser_in_board", "near_laser", "off_local_grid", "target_holes"]
+__all__ = [
+    "fill_holes",
+    "laser_in_board",
+    "laser_removed",
+    "near_laser",
+    "off_local_grid",
+    "target_holes",
+]
 
 _NOISE_K = 5.0  # off_local_grid: threshold in robust standard deviations of the residuals
 _NOISE_MIN_PX = 0.1  # ... and never below (the detection noise of a sharp target)
@@ -61,6 +68,49 @@ def laser_in_board(image: Any) -> bool:
     # a coloured line: some pixels (1 in 10^4: a 5 px line 2 % of the image long) whose
     # channels differ by a tenth of full scale; JPEG noise on grey stays far below
     return bool(np.mean(c.max(axis=2) - c.min(axis=2) > 0.1 * full) < 1e-4)
+
+
+def laser_removed(image: Any, grid: CircleGrid) -> np.ndarray | None:
+    """A grey image of a circle grid with the laser line taken out: its morphological
+    opening (grey erosion, then dilation) by a disc half the size of the smaller of a
+    dot and the white gap between dots, measured from the image's blobs.
+
+    An opening removes every bright feature the disc does not fit into and keeps the
+    rest: the thin line (a 5 px line is down to 1e-5 of its peak at 4 FWHM) goes, on
+    the white board and across the dots it crosses, while the dots (dark on white, or
+    light dots larger than the disc) and the white gaps (wider than the disc) stay. The
+    result stands in for a laser-off image: the grid is detected in it (a line across
+    the dots splits and moves their blobs, and the grid is then lost), and the line is
+    extracted from the difference, as with `view_<k>_off`.
+
+    **Returns:** the opened image (input dtype), or None when no dots are seen.
+    """
+    from ..targets._circles import _blob_detector
+    from ..targets._result import grey_float, to_uint8
+
+    img = np.asarray(image)
+    if img.ndim != 2:
+        return None
+    norm, problem = grey_float(img)
+    if problem:
+        return None
+    u8 = to_uint8(norm)
+    n = grid.num_corners
+    sizes = []
+    for light in (False, True):
+        kp = _blob_detector(u8.shape, n, light).detect(u8)
+        if len(kp) > len(sizes):
+            sizes = [k.size for k in kp]
+    if len(sizes) < max(4, n // 4):
+        return None
+    dot = float(np.median(sizes))  # blob diameter, px
+    nearest = grid.spacing_mm * (np.sqrt(2.0) if grid.asymmetric else 1.0)
+    gap = dot * (nearest / grid.diameter_mm - 1.0)
+    d = int(0.5 * min(dot, gap)) | 1  # odd disc diameter
+    if d < 3:
+        return None
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
+    return cv2.morphologyEx(img, cv2.MORPH_OPEN, disc)
 
 
 def _homography(corners_px: np.ndarray, xy_mm: np.ndarray):
