@@ -132,10 +132,11 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     assert v.source == ((f"view_0.{ext}",) if layout == "single" else
                         (f"view_0_board.{ext}", f"view_0_stripe.{ext}"))  # fmt: skip
     # in a grey single image the laser line shifts the centres of the circles it crosses
-    # by up to 3 px: those leave the local grid and are rejected (one row of 7 of 42);
-    # every point kept is accurate
+    # by up to 3 px: those leave the local grid and are rejected (one row of 7 of 42); a
+    # colour JPEG keeps some of the line in every channel: the points within its reach
+    # go too (a row or two); every point kept is accurate
     m = v.corner_mask
-    assert m.all() if (layout == "pair" or colour) else m.mean() >= 0.75
+    assert m.all() if layout == "pair" else m.mean() >= 0.6, m.mean()
     assert np.hypot(*(v.corners_px[m] - corners[0][m]).T).max() <= tol
     line = truth.stripe_px[0]
     span = np.ptp(line[:, 0])
@@ -194,6 +195,33 @@ def test_single_grey_stripe_on_board(cam, tmp_path):
     assert not v.corner_mask[_near_line(corners[0], line) < 20].any()
 
 
+def test_laser_removed_stands_in_for_laser_off(cam, tmp_path):
+    """`laser_removed` (the opening of a grey single image of a circle grid) against the
+    laser-off render of the same pose with the same noise: the grid is found in both, and
+    every dot the line does not touch is as accurate in the opening as in the laser-off
+    image."""
+    from scheimflux.capture._laser import laser_removed
+    from scheimflux.targets import detect_circles
+
+    target = CircleGrid(7, 6, 0.2, 0.08)
+    rig, truth, corners = _scene(cam, target)
+    write_scene_images(tmp_path / "on", rig, target, truth, layout="single", seed=3)
+    write_scene_images(tmp_path / "off", rig, target, truth, layout="single", seed=3,
+                       laser_peak=0.0)  # fmt: skip
+    on = cv2.imread(str(tmp_path / "on" / "view_0.png"), cv2.IMREAD_UNCHANGED)
+    off = cv2.imread(str(tmp_path / "off" / "view_0.png"), cv2.IMREAD_UNCHANGED)
+    opened = laser_removed(on, target)
+    line = truth.stripe_px[0]
+    a, b = detect_circles(opened, target), detect_circles(off, target)
+    assert a.found and b.found
+    untouched = _near_line(corners[0], line) > 20
+    # the truth within the circle-grid tolerance of test_rendered_captures (0.05 px); the
+    # opening moves them from the laser-off image's by up to 0.04 px (the erosion picks
+    # the noise's minima)
+    for r in (a, b):
+        assert np.hypot(*(r.corners_px - corners[0])[untouched].T).max() < 0.05
+
+
 def test_fill_holes_and_laser_in_board():
     """`fill_holes` continues a line running along the bridging axis exactly (straight
     interpolation of a profile that does not change along it), on either axis and at
@@ -243,6 +271,30 @@ def test_single_grey_points_near_laser_dropped(cam, tmp_path, target):
     # at most the two rows next to the line go (a row pitch is ~68 px, the reach ~30 px)
     rows = len(np.unique(target.points_mm[:, 1]))
     assert kept >= 3 * len(corners) * (rows - 2) / rows
+
+
+def test_colour_jpeg_points_near_laser_dropped(cam, tmp_path):
+    """A colour JPEG of board and red line: JPEG's half-resolution chroma leaves some of
+    the line in the channels it is not in (`_laser.py`), and the corners it passes near
+    are displaced in the channel minimum (measured 0.16 px at 26 px, 0.57 px at 13 px
+    from the line; 0.03 px in the same image as PNG). They are dropped; every corner kept
+    is within 0.1 px of the truth (3x the PNG's worst corner, below the smallest
+    displacement measured)."""
+    target = Checkerboard(7, 6, 0.2)
+    kept = 0
+    for i, frac in enumerate((0.1, 0.3)):
+        rig, truth, corners = _scene_at(cam, target, frac)
+        folder = tmp_path / str(i)
+        write_scene_images(folder, rig, target, truth, layout="single", colour=True, ext="jpg",
+                           seed=1)  # fmt: skip
+        obs, report = detect_captures(folder, target)
+        v = obs.views[0]
+        m = v.corner_mask
+        assert np.hypot(*(v.corners_px - corners)[m].T).max() < 0.1
+        assert any("colour JPEG single image" in n for n in report.notes)
+        kept += m.sum()
+    # at most the two rows next to the line go (a row pitch is ~68 px, the reach ~48 px)
+    assert kept >= 2 * len(corners) * (6 - 2) / 6
 
 
 def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):
@@ -456,6 +508,21 @@ E2E_LAYOUTS = {  # write_scene_images options, and whether a laser-off image is 
 }
 
 
+def _dots_inside(corners_px, grid, shape):
+    """`(V, M)` bool: each dot wholly inside the image (a dot cut by the image edge has a
+    moved centroid, and OpenCV's grid finder refuses it): its centre at least its radius
+    plus 1 px from the border, the radius from the largest local scale of the view
+    (neighbours within a row)."""
+    xy = grid.points_mm[:, :2]
+    row = np.arange(grid.num_corners) % grid.cols < grid.cols - 1
+    duv = np.linalg.norm(np.diff(corners_px, axis=1), axis=2)[:, row[:-1]]
+    dxy = np.linalg.norm(np.diff(xy, axis=0), axis=1)[row[:-1]]
+    r = 0.5 * grid.diameter_mm * np.nanmax(duv / dxy, axis=1)[:, None] + 1.0
+    u, v = corners_px[..., 0], corners_px[..., 1]
+    h, w = shape
+    return (u >= r - 0.5) & (v >= r - 0.5) & (u <= w - 0.5 - r) & (v <= h - 0.5 - r)
+
+
 def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_main=None):
     """Render, `detect`, `calibrate` (real CLI, real files) and measure against truth.
 
@@ -482,6 +549,8 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
     obs = read_observations(obs_path)
     kept = [int(v.source[0].split("_")[1].split(".")[0]) for v in obs.views]
     seen = np.isfinite(truth.corners_px).all(axis=2)
+    if isinstance(target, CircleGrid):  # a dot is seen when all of it is in the image
+        seen &= _dots_inside(truth.corners_px, target, (rig.sensor_size[1], rig.sensor_size[0]))
     # the detection noise floor: RMS per coordinate (as calibrate's reprojection RMS) of
     # detected - exact ray-traced points
     err = np.concatenate(
@@ -531,9 +600,14 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
 
 # cases measured short of the bounds below (docs/capture.md's table)
 E2E_SHORT = {
-    ("circles", "single-grey"): "grey single image of a circle grid, no laser-off image: "
-    "converged at the floor (0.0078 / 0.0084 px), but 5.9 % of the stripe centres are "
-    "over 0.5 px off the line, plane 0.042 deg, 3-D 0.57 um RMS, 2 of 9 whole views lost",
+    ("checkerboard", "single-grey"): "grey single image of a checkerboard, no laser-off "
+    "image: converged at the floor (0.0212 / 0.0229 px), but the stripe centres on the "
+    "line are 0.124 px RMS off it (bound 0.1; the grey line over the checker squares, "
+    "the extractor's), worst corner 0.21 px, plane 0.039 deg, 3-D 0.53 um RMS",
+    ("acircles", "single-grey"): "grey single image of an asymmetric circle grid, no "
+    "laser-off image: converged (0.0046 px), stripe 99.8 % on the line at 0.053 px, plane "
+    "0.0025 deg, 3-D 0.038 um, 7/7 views; but a dot is 1.39 px off its truth (floor "
+    "0.053 px, inflated by it; calibrate's rejection pass left it out): not established",
 }
 
 

@@ -25,7 +25,14 @@ from ..targets._circles import CircleGrid
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
-from ._laser import laser_in_board, near_laser, off_local_grid, target_holes
+from ._laser import (
+    JPEG_BLOCK_PX,
+    laser_in_board,
+    laser_removed,
+    near_laser,
+    off_local_grid,
+    target_holes,
+)
 from ._region import board_region, board_stripe, laser_free
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
@@ -78,6 +85,11 @@ def _default_margin(uv: np.ndarray, target: Target) -> float:
     span_px = float(np.ptp(uv[ok], axis=0).max())
     pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
     return max(3.0, 0.5 * pitch * span_px / max(span_mm, 1e-12))
+
+
+def _is_jpeg(path: str) -> bool:
+    """Whether the file is stored as JPEG (by its name: `.jpg`, `.jpeg`, any case)."""
+    return os.path.splitext(os.fspath(path))[1].lower() in (".jpg", ".jpeg")
 
 
 def _too_few(res, target, min_points: int) -> str:
@@ -185,9 +197,16 @@ def detect_captures(
             elif size.mismatch(off, cv.off):
                 drop(cv, size.mismatch(off, cv.off))
                 continue
-        # the target is detected in a laser-free image where there is one
-        res = detect_target(laser_free(image if off is None else off), target,
-                            mirrored=mirrored)  # fmt: skip
+        # the target is detected in a laser-free image where there is one; a grey
+        # single image of a circle grid without one: in the image with the line taken
+        # out by an opening (`laser_removed`: a line across the dots splits their blobs
+        # and the grid is lost); the dots it crossed are dropped below (`near_laser`)
+        found_in, opened = image if off is None else off, None
+        if (off is None and cv.layout == "single" and isinstance(target, CircleGrid)
+                and laser_in_board(image)):  # fmt: skip
+            opened = laser_removed(image, target)
+            found_in = image if opened is None else opened
+        res = detect_target(laser_free(found_in), target, mirrored=mirrored)
         reason = _too_few(res, target, min_points)
         if reason:
             if preview_dir is not None:
@@ -215,20 +234,38 @@ def detect_captures(
                 continue
             else:
                 # one grey image of target and line (no laser-off image): keep the line
-                # out of the dots, and the points out of the line's reach (_laser.py)
-                shared = cv.layout == "single" and off is None and laser_in_board(image)
-                holes = None
-                if shared:
+                # out of the dots, and the points out of the line's reach (_laser.py);
+                # a colour JPEG keeps some of the line in every channel (_laser.py): its
+                # points are kept out of the line's reach too, grown by a chroma block
+                single = cv.layout == "single" and off is None
+                grey = single and laser_in_board(image)
+                jpeg = _is_jpeg(cv.board)
+                shared = grey or (single and jpeg)
+                attempts = [(simg, None)]  # (signal image, holes)
+                if grey and isinstance(target, CircleGrid):
                     grow = _hole_margin(corners, target, stripe_width_px)
-                    holes = target_holes(target, corners, shape, margin_px=grow)
-                try:
-                    stripe_res, inside = board_stripe(
-                        simg, mask, width_px=stripe_width_px, background=off, holes=holes
-                    )
-                    ok = stripe_res.valid & inside
-                    stripe_uv = stripe_res.uv[ok]
-                except ValueError as err:
-                    note(cv, f"no stripe extracted: {err}")
+                    attempts = [(simg, target_holes(target, corners, shape, margin_px=grow))]
+                    if opened is not None:
+                        # first the line alone: the image less its opening; where the line
+                        # crosses a dot's edge the opening leaves a notch, so no centre on
+                        # a dot (grown by a line width) is kept. The attempt that keeps
+                        # more centres wins (a saturated line can be refused in either)
+                        w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
+                        diff = image.astype(np.float32) - opened.astype(np.float32)
+                        attempts.insert(0, (diff, target_holes(target, corners, shape,
+                                                                margin_px=w5)))  # fmt: skip
+                for signal, holes in attempts:
+                    try:
+                        res_i, inside = board_stripe(
+                            signal, mask, width_px=stripe_width_px, background=off,
+                            holes=holes,
+                        )  # fmt: skip
+                    except ValueError as err:
+                        note(cv, f"no stripe extracted: {err}")
+                        continue
+                    ok_i = res_i.valid & inside
+                    if stripe_res is None or ok_i.sum() > len(stripe_uv):
+                        stripe_res, ok, stripe_uv = res_i, ok_i, res_i.uv[ok_i]
                 if len(stripe_uv) == 0 and stripe_res is not None:
                     note(cv, "no laser line found on the board")
                 if shared:
@@ -239,12 +276,15 @@ def detect_captures(
                         if stripe_width_px is not None:
                             w = max(w, float(stripe_width_px))
                         hit |= near_laser(target, corners, stripe_uv, w,
-                                          orientation=stripe_res.orientation)  # fmt: skip
+                                          orientation=stripe_res.orientation,
+                                          extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
                     if hit.any():
                         corners = corners.copy()
                         corners[hit] = np.nan
-                        note(cv, f"{int(hit.sum())} point(s) within the laser line's reach "
-                                 "or off their local grid dropped (grey single image)")  # fmt: skip
+                        kind = "grey" if grey else "colour JPEG"
+                        note(cv, f"{int(hit.sum())} point(s) within the laser line's "
+                                 f"reach or off their local grid dropped ({kind} single "
+                                 "image)")  # fmt: skip
                         res = DetectionResult(corners, True, res.message)
                         reason = _too_few(res, target, min_points)
                         if reason:
