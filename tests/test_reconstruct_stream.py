@@ -139,8 +139,9 @@ def test_failure_midway_leaves_no_file(tmp_path, system):
     assert os.listdir(tmp_path) == []
 
 
-def _cal(tmp_path):
-    """A calibration file of the paper's x1.5 rig with its sensor size, written by hand."""
+def _cal(tmp_path, coverage=None):
+    """A calibration file of the paper's x1.5 rig with its sensor size, written by hand
+    (with `coverage`, a `Coverage`, when given)."""
     doc = {
         "format": FORMAT,
         "model": "thick-lens",
@@ -148,6 +149,8 @@ def _cal(tmp_path):
         "laser_plane": plane_to_dict(sf.paper_laser_plane()),
         "sensor": {"width": SENSOR[0], "height": SENSOR[1]},
     }
+    if coverage is not None:
+        doc["coverage"] = coverage.to_dict()
     path = tmp_path / "cal.json"
     path.write_text(json.dumps(doc))
     return str(path)
@@ -295,6 +298,36 @@ def test_cli_reconstruct_from_a_folder_of_frames(tmp_path, capsys):
     argv = ["reconstruct", cal, str(tmp_path / "none"), "--out", str(tmp_path / "c.ply")]
     assert main(argv) == 1
     assert "no image files" in capsys.readouterr().err and not (tmp_path / "c.ply").exists()
+
+
+def test_cli_counts_pixels_outside_coverage_in_its_one_pass(tmp_path, capsys):
+    # The count of stripe pixels outside the calibration's coverage comes from the
+    # reconstruction's own pass, for a stripes file and a folder of frames alike (a folder
+    # is no stripes file to read a second time). Truth: the grid covers the columns of
+    # the first 20 cells of 8 px, i.e. u < 159.5, a plain threshold on the pixels.
+    import cv2
+
+    from scheimflux.calibrate._coverage import Coverage
+    from scheimflux.simulate._render_stripe import render_stripe
+
+    grid = np.zeros((SENSOR[1] // 8, SENSOR[0] // 8), bool)
+    grid[:, :20] = True
+    cal = _cal(tmp_path, Coverage(grid, 8, 0.0, SENSOR))
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):
+        img, _ = render_stripe((240, 320), lambda u, i=i: 100.0 + 0.1 * u + 9 * i, seed=i)
+        cv2.imwrite(str(folder / f"f{i}.png"), img)
+    stripes = tmp_path / "s.json"
+    assert main(["extract", str(folder), "--out", str(stripes)]) == 0
+    px = np.concatenate(read_stripes(stripes))
+    n_out = int(np.sum(px[:, 0] >= 159.5))
+    assert 0 < n_out < len(px)
+    want = f"{n_out} of {len(px)} stripe pixels on the sensor"
+    for i, source in enumerate((stripes, folder)):
+        capsys.readouterr()
+        assert main(["reconstruct", cal, str(source), "--out", str(tmp_path / f"{i}.ply")]) == 0
+        assert want in capsys.readouterr().out
 
 
 def test_import_stays_light():

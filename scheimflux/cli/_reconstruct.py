@@ -143,19 +143,16 @@ def reconstruct_frames(
     return _frames(loaded.camera, loaded.plane, frames, stage=stage, sensor_size=sensor_size)
 
 
-def _coverage_line(loaded, stripes) -> str:
-    """How many stripe pixels lie outside the calibration's coverage (a second, cheap
-    pass over STRIPES: the reconstruction itself is not touched)."""
+def _coverage_line(loaded, summary) -> str:
+    """How many stripe pixels lay outside the calibration's coverage (counted in the
+    reconstruction's own pass: `ScanSummary.outside`)."""
     cov = getattr(loaded, "coverage", None)
-    if cov is None:
+    if cov is None or summary.outside is None:
         return (
             "  coverage: unknown (the calibration file records no coverage of the sensor; "
             "re-calibrate with this version to have points outside it counted)"
         )
-    from ..calibrate._coverage import count_outside
-    from ..io._stripes import iter_stripes
-
-    out, n = count_outside(cov, iter_stripes(stripes))
+    out, n = summary.outside, summary.on_sensor
     pct = f" ({100 * out / n:.1f} %)" if n else ""
     note = ": the model extrapolates there, errors can be several times larger" if out else ""
     return (
@@ -218,7 +215,7 @@ def run(args) -> int:
             print(f"    {s.counts[c]:>8}  {reason}")
     if not s.sensor_checked:
         print("  (the calibration records no sensor size: pixels were not range-checked)")
-    print(_coverage_line(loaded, args.stripes))
+    print(_coverage_line(loaded, s))
     box = ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(s.lo, s.hi))
     print(f"  extent (x, y, z): {box} mm")
     print(f"wrote {out}")

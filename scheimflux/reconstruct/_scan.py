@@ -30,7 +30,9 @@ class ScanSummary:
     **Fields:** `out` the file written; `frames`; `pixels` stripe pixels; `counts`
     pixels per `Status` code (index 0 = valid); `lo`, `hi` the extent of the valid
     points (mm); `model`, `frame`; `sensor_checked` whether the calibration recorded
-    a sensor size (pixels range-checked)."""
+    a sensor size (pixels range-checked); `outside`, `on_sensor` the stripe pixels on
+    the sensor outside the calibration's coverage and all of them (None when the
+    calibration records no coverage), counted in the same pass as the reconstruction."""
 
     out: str
     frames: int
@@ -41,6 +43,8 @@ class ScanSummary:
     model: str
     frame: str
     sensor_checked: bool
+    outside: int | None = None
+    on_sensor: int | None = None
 
     @property
     def valid(self) -> int:
@@ -106,6 +110,10 @@ def reconstruct_scan(
         raise ValueError(".npy output from a frame iterator needs the row width up front")
     sensor = getattr(loaded, "sensor_size", None)
     stage = loaded.stage if frame == "measurement" else None
+    coverage = getattr(loaded, "coverage", None)
+    tally = [0, 0]  # stripe pixels outside the coverage, on the sensor
+    if coverage is not None:
+        frames = _counting_coverage(coverage, frames, tally)
     counts = np.zeros(len(REASONS) + 1, np.int64)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     n_frames = 0
@@ -146,4 +154,20 @@ def reconstruct_scan(
         model=str(getattr(loaded, "model", "")),
         frame=frame,
         sensor_checked=sensor is not None,
+        outside=tally[0] if coverage is not None else None,
+        on_sensor=tally[1] if coverage is not None else None,
     )
+
+
+def _counting_coverage(coverage, frames, tally):
+    """`frames` unchanged, adding each frame's pixels outside `coverage` and on the
+    sensor to `tally` as it passes (`count_outside`)."""
+    from ..calibrate._coverage import count_outside
+
+    for f in frames:
+        a = np.asarray(f)
+        if a.ndim == 2 and a.shape[1] == 2:  # a malformed frame is the reconstruction's to refuse
+            out, n = count_outside(coverage, (a,))
+            tally[0] += out
+            tally[1] += n
+        yield f
