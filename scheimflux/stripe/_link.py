@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _fast
 from ._image import _median
 
 
@@ -90,6 +91,11 @@ def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.
     n = y.size
     single = w.ndim == 1
     w = np.atleast_2d(w)
+    if _fast.enabled and n > 0 and half > 0:
+        pred, count = _fast.local_fit(
+            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(w, np.float64), int(half)
+        )
+        return (pred[0], count[0]) if single else (pred, count)
     u = np.arange(n, dtype=np.float64) / half
     yw = np.where(w > 0, y, 0.0) * w
     # windowed sums of w u^k (k <= 4) and w y u^k (k <= 2) from one cumulative sum

@@ -26,6 +26,7 @@ import math
 import cv2
 import numpy as np
 
+from . import _fast
 from ._kernels import FWHM_PER_SIGMA, gaussian_kernels, kernel_radius, steger_sigma
 
 _TILE = 64
@@ -383,6 +384,15 @@ def steger_band(
     rows = centre[None, :] + np.arange(-k_search, k_search + 1)[:, None]
     flat_s = (rows - top_c[None, :]) * n_cols + ccol[None, :]
     win = [np.take(smooth, flat_s)] + d
+    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
+    if _fast.enabled and w >= _NORMAL_WINDOW:
+        # the steps below in one compiled pass (same arithmetic: `_fast.py`)
+        y, strength, width, found, row, asym, ny, ok = _fast.band_lines(
+            *win, rows, smooth, top_c, ccol, 1, 2 * k_search, bg_off, sigma, s_total,
+            bg_off, _INSIDE, FWHM_PER_SIGMA, _NORMAL_WINDOW,
+        )  # fmt: skip
+        if ok and found.any():
+            return ScanLines(y, strength, width, found, row, asym, ny)
     # Background samples beside the strongest line point (as in the full frame).
     selection = _select(win, 1, 2 * k_search)
     cols = np.arange(w)
@@ -390,7 +400,6 @@ def steger_band(
     bg_crow = best_row[None, :] + np.array([-bg_off, bg_off])[:, None] - top_c[None, :]
     bg2 = np.take(smooth, bg_crow * n_cols + ccol)
     res, bg, grad_y, ny = _evaluate(win, rows, selection, bg2, bg_off, sigma)
-    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
 
     def sample(rr, cc):
         crow_s = np.clip(rr - top_c, 0, comp.shape[0] - 1)
