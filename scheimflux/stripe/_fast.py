@@ -144,8 +144,10 @@ def _median_normals(nx, ny, found, window):
         elif finite >= 3:
             phi = buf[max((finite - 1) // 2, 0)]
         else:
-            phi = padded[half + i] if found[i] else np.arctan2(
-                np.float64(nx[i]) * flip[i], np.float64(ny[i]) * flip[i]
+            phi = (
+                padded[half + i]
+                if found[i]
+                else np.arctan2(np.float64(nx[i]) * flip[i], np.float64(ny[i]) * flip[i])
             )
         sx[i] = np.sin(phi) * flip[i]
         sy[i] = np.cos(phi) * flip[i]
