@@ -18,6 +18,7 @@ call on a machine compiles it (seconds), later processes load it.
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 
@@ -40,7 +41,9 @@ enabled = AVAILABLE
 def _jit(fn):
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True)(fn)
+    # the plain function: a run-time type-checking import hook (the test suite's
+    # jaxtyping hook) wraps every function of the package, and Numba compiles Python
+    return numba.njit(cache=True, nogil=True)(inspect.unwrap(fn))
 
 
 _F32 = np.float32
@@ -370,3 +373,42 @@ def local_fit(y, w, half):
             pred[m, i] = num / det if good else np.nan
             count[m, i] = s0 if good else 0.0
     return pred, count
+
+
+@_jit
+def windowed_median(values, ok, window):
+    """`_coarse._windowed_median`: median of the `ok` entries in a centred window of
+    `window` (odd) entries, NaN where there are none; a sorted sliding window."""
+    n = values.size
+    half = window // 2
+    padded = np.full(n + 2 * half, np.inf)
+    for i in range(n):
+        if ok[i]:
+            padded[half + i] = values[i]
+    buf = np.empty(window)
+    finite = 0
+    for m in range(window):
+        v = padded[m]
+        finite += v < np.inf
+        p = m
+        while p > 0 and buf[p - 1] > v:
+            buf[p] = buf[p - 1]
+            p -= 1
+        buf[p] = v
+    out = np.empty(n)
+    for i in range(n):
+        if i > 0:
+            gone, v = padded[i - 1], padded[i + window - 1]
+            finite += (v < np.inf) - (gone < np.inf)
+            p = 0
+            while buf[p] != gone:
+                p += 1
+            while p > 0 and buf[p - 1] > v:
+                buf[p] = buf[p - 1]
+                p -= 1
+            while p < window - 1 and buf[p + 1] < v:
+                buf[p] = buf[p + 1]
+                p += 1
+            buf[p] = v
+        out[i] = buf[(finite - 1) // 2] if finite > 0 else np.nan
+    return out
