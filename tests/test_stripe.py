@@ -457,3 +457,25 @@ def test_compiled_windowed_median_and_local_fit(monkeypatch):
     (pf, cf), (pr, cr) = _both_paths(monkeypatch, lambda: _link._local_fit(y, w, 40))
     np.testing.assert_array_equal(cf, cr)
     np.testing.assert_allclose(pf, pr, rtol=1e-12, atol=1e-9, equal_nan=True)
+
+
+@needs_numba
+def test_compiled_link_segments(monkeypatch):
+    from scheimflux.stripe import _link
+
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        n = int(rng.integers(1, 600))
+        # a line with jumps, gaps and stray points
+        y = np.cumsum(rng.normal(0, 0.5, n)) + 30 * (rng.random(n) < 0.05)
+        valid = rng.random(n) < rng.uniform(0.3, 1.0)
+        strength = rng.uniform(0, 2, n)
+        kw = dict(
+            max_jump_px=float(rng.uniform(0.5, 3)), max_gap=int(rng.integers(0, 4)),
+            min_points=int(rng.integers(1, 20)), high=float(rng.uniform(0, 2)),
+            trim=int(rng.integers(0, 5)), min_line=int(rng.integers(0, 60)),
+        )  # fmt: skip
+        yy = np.where(valid, y, np.nan)
+        fast, ref = _both_paths(monkeypatch, lambda: _link.link_segments(yy, valid, strength, **kw))
+        np.testing.assert_array_equal(fast[0], ref[0])
+        np.testing.assert_array_equal(fast[1], ref[1])

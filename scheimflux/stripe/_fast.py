@@ -412,3 +412,61 @@ def windowed_median(values, ok, window):
             buf[p] = v
         out[i] = buf[(finite - 1) // 2] if finite > 0 else np.nan
     return out
+
+
+@_jit
+def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, trim, min_line):
+    """`_link.link_segments` (labels, kept mask): one pass over the valid centres."""
+    n = y.size
+    labels = np.full(n, -1, np.intp)
+    keep = np.zeros(n, np.bool_)
+    idx = np.flatnonzero(valid)
+    m = idx.size
+    if m == 0:
+        return labels, keep
+    seg = np.empty(m, np.intp)
+    first = np.empty(m, np.intp)  # per segment: its first and last member, its peak
+    last = np.empty(m, np.intp)
+    peak = np.empty(m)
+    s = -1
+    for i in range(m):
+        new = i == 0
+        if not new:
+            step = idx[i] - idx[i - 1]
+            jump = abs(y[idx[i]] - y[idx[i - 1]])
+            new = (step > max_gap + 1) or (jump > max_jump_px * step)
+        v = strength[idx[i]]
+        if new:
+            s += 1
+            first[s] = i
+            peak[s] = v
+        elif not np.isnan(peak[s]) and (np.isnan(v) or v > peak[s]):
+            peak[s] = v  # np.maximum: NaN propagates
+        last[s] = i
+        seg[i] = s
+    n_seg = s + 1
+    long_gap = max(2 * min_points, 3)
+    any_line = False
+    keep_seg = np.empty(n_seg, np.bool_)
+    for s in range(n_seg):
+        keep_seg[s] = (last[s] - first[s] + 1 >= min_points) and (peak[s] >= high)
+        if keep_seg[s] and idx[last[s]] - idx[first[s]] + 1 >= min_line:
+            any_line = True
+    if not any_line:
+        return labels, keep
+    for i in range(m):
+        s = seg[i]
+        if not keep_seg[s]:
+            continue
+        if trim > 0:
+            gap_before = idx[0] if s == 0 else idx[first[s]] - idx[last[s - 1]] - 1
+            gap_after = (
+                n - 1 - idx[m - 1] if s == n_seg - 1 else idx[first[s + 1]] - idx[last[s]] - 1
+            )
+            dist_first = idx[i] - idx[first[s]] if gap_before >= long_gap else trim
+            dist_last = idx[last[s]] - idx[i] if gap_after >= long_gap else trim
+            if min(dist_first, dist_last) < trim:
+                continue
+        labels[idx[i]] = s
+        keep[idx[i]] = True
+    return labels, keep

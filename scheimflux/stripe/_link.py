@@ -41,6 +41,12 @@ def link_segments(
     - `min_line`: if no segment spans this many scan lines, the frame holds no line
       (glints and short reflections alone): nothing is kept.
     """
+    if _fast.enabled and y.ndim == 1 and y.dtype == strength.dtype == np.float64:
+        return _fast.link_segments(
+            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
+            np.ascontiguousarray(strength, np.float64), float(max_jump_px), int(max_gap),
+            int(min_points), float(high), int(trim), int(min_line),
+        )  # fmt: skip
     idx = np.flatnonzero(valid)
     labels = np.full(y.shape, -1, np.intp)
     if idx.size == 0:
