@@ -470,3 +470,35 @@ def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, tr
         labels[idx[i]] = s
         keep[idx[i]] = True
     return labels, keep
+
+
+@_jit
+def tile_rows(scan, rows, start, tile_w):
+    """`_steger._tiles`' composite: `comp[i, t tile_w + c] = scan[rows[i, t], start[t] + c]`
+    as float32 (the same values as the reference's fancy index and cast)."""
+    height, n_tiles = rows.shape
+    comp = np.empty((height, n_tiles * tile_w), np.float32)
+    for i in range(height):
+        for t in range(n_tiles):
+            r = rows[i, t]
+            s = start[t]
+            base = t * tile_w
+            for c in range(tile_w):
+                comp[i, base + c] = np.float32(scan[r, s + c])
+    return comp
+
+
+@_jit
+def gather_rows(src, row0, ccol, n_rows):
+    """`out[q, j] = src[row0[j] + q, ccol[j]]` for q < n_rows, float32; `ok` False when a
+    row falls outside `src` (the caller then runs the reference's indexing)."""
+    h, w = src.shape
+    n = row0.size
+    out = np.empty((n_rows, n), np.float32)
+    for j in range(n):
+        if row0[j] < 0 or row0[j] + n_rows > h or ccol[j] < 0 or ccol[j] >= w:
+            return out, False
+    for q in range(n_rows):
+        for j in range(n):
+            out[q, j] = src[row0[j] + q, ccol[j]]
+    return out, True
