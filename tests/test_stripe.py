@@ -444,7 +444,7 @@ def test_compiled_equals_numpy_reference(monkeypatch):
 
 @needs_numba
 def test_compiled_windowed_median_and_local_fit(monkeypatch):
-    from scheimflux.stripe import _coarse, _link
+    from scheimflux.stripe import _coarse, _link, _ridge
 
     rng = np.random.default_rng(5)
     for n, p_ok in ((1, 1.0), (7, 0.5), (40, 1.0), (400, 1.0), (400, 0.7), (400, 0.05)):
@@ -452,6 +452,12 @@ def test_compiled_windowed_median_and_local_fit(monkeypatch):
         ok = rng.random(n) < p_ok
         fast, ref = _both_paths(monkeypatch, lambda: _coarse._windowed_median(values, ok, 15))
         np.testing.assert_array_equal(fast, ref)
+    small = rng.integers(0, 4, (60, 90)).astype(np.float32)  # many ties
+    for d in (2, 3, 5):
+        np.testing.assert_array_equal(
+            _fast.ridge_rows(small, d), _ridge.ridge_response(small, d, 0)
+        )
+    np.testing.assert_array_equal(_fast.column_argmax(small), np.argmax(small, axis=0))
     y = 100 + 0.1 * np.arange(500) + rng.normal(size=500)
     w = (rng.random((2, 500)) < 0.8).astype(np.float64)
     (pf, cf), (pr, cr) = _both_paths(monkeypatch, lambda: _link._local_fit(y, w, 40))

@@ -112,11 +112,13 @@ def coarse_track(
     hs, ws = small.shape
     d = ridge_offset(width_px)
     # Two-sided ridge response (a step edge gives none), zero outside the mask.
-    ridge = ridge_response(small, d, 0)
+    fast = _fast.enabled and small.dtype == np.float32 and hs > 2 * d
+    ridge = _fast.ridge_rows(small, d) if fast else ridge_response(small, d, 0)
     if mask_small is not None:
         ridge = np.where(mask_small, ridge, 0.0).astype(np.float32)
 
-    idx = np.argmax(ridge, axis=0)  # first maximum per scan line
+    # first maximum per scan line
+    idx = _fast.column_argmax(ridge) if fast else np.argmax(ridge, axis=0)
     cols = np.arange(ws)
     resp = ridge[idx, cols]
 

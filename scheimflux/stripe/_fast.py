@@ -502,3 +502,30 @@ def gather_rows(src, row0, ccol, n_rows):
         for j in range(n):
             out[q, j] = src[row0[j] + q, ccol[j]]
     return out, True
+
+
+@_jit
+def ridge_rows(small, d):
+    """`_ridge.ridge_response(small, d, 0)` (float32): `min(c - up, c - down)` along the
+    rows, 0 within `d` rows of the ends."""
+    h, w = small.shape
+    out = np.zeros((h, w), np.float32)
+    for i in range(d, h - d):
+        for j in range(w):
+            c = small[i, j]
+            out[i, j] = min(c - small[i - d, j], c - small[i + d, j])
+    return out
+
+
+@_jit
+def column_argmax(a):
+    """`np.argmax(a, axis=0)` of a 2-D array without NaN (first maximum per column)."""
+    h, w = a.shape
+    best = np.zeros(w, np.intp)
+    top = a[0].copy()
+    for i in range(1, h):
+        for j in range(w):
+            if a[i, j] > top[j]:
+                top[j] = a[i, j]
+                best[j] = i
+    return best
