@@ -485,3 +485,19 @@ def test_compiled_link_segments(monkeypatch):
         fast, ref = _both_paths(monkeypatch, lambda: _link.link_segments(yy, valid, strength, **kw))
         np.testing.assert_array_equal(fast[0], ref[0])
         np.testing.assert_array_equal(fast[1], ref[1])
+
+
+@needs_numba
+def test_compiled_consistent(monkeypatch):
+    from scheimflux.stripe import _link
+
+    rng = np.random.default_rng(11)
+    for trial in range(30):
+        n = int(rng.integers(10, 900))
+        x = np.arange(n)
+        y = 200 + 0.05 * x + 20 * np.sin(x / rng.uniform(50, 400)) + rng.normal(0, 0.1, n)
+        stray = rng.random(n) < rng.uniform(0, 0.2)  # runs and points off the line
+        y = np.where(stray, y + rng.normal(0, 8, n), y)
+        valid = rng.random(n) < rng.uniform(0.4, 1.0)
+        fast, ref = _both_paths(monkeypatch, lambda: _link.consistent(y, valid))
+        np.testing.assert_array_equal(fast, ref)

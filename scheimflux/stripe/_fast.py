@@ -529,3 +529,69 @@ def column_argmax(a):
                 top[j] = a[i, j]
                 best[j] = i
     return best
+
+
+@_jit
+def _median(x):
+    """`_image._median` (the mean of the two middle values for an even count)."""
+    s = np.sort(x)
+    m = s.size // 2
+    if s.size % 2:
+        return s[m]
+    return (s[m - 1] + s[m]) / 2
+
+
+@_jit
+def consistent_passes(yv, valid, keep, off_curve, half, floor_px):
+    """The two local-fit passes of `_link.consistent` (after its global cubic)."""
+    n = yv.size
+    any_off = False
+    for i in range(n):
+        any_off = any_off or off_curve[i]
+    keep = keep.copy()
+    for step in range(2):
+        factor, floor = (3.0, 1.0) if step == 0 else (5.0, floor_px)
+        if step == 0 and any_off:
+            w = np.empty((2, n))
+            for i in range(n):
+                w[0, i] = 1.0 if keep[i] else 0.0
+                w[1, i] = 1.0 if valid[i] else 0.0
+            p, c = local_fit(yv, w, half)
+            pred, count = p[0].copy(), c[0].copy()
+            for i in range(n):
+                # a piece of line the global cubic does not follow, judged by its own
+                if count[i] < 6 and c[1, i] >= 30:
+                    pred[i], count[i] = p[1, i], c[1, i]
+        else:
+            w = np.empty((1, n))
+            for i in range(n):
+                w[0, i] = 1.0 if keep[i] else 0.0
+            p, c = local_fit(yv, w, half)
+            pred, count = p[0], c[0]
+        r = np.abs(yv - pred)
+        judged = np.zeros(n, np.bool_)
+        n_judged = 0
+        n_kept = 0
+        for i in range(n):
+            judged[i] = valid[i] and count[i] >= 6 and np.isfinite(r[i])
+            n_judged += judged[i]
+            n_kept += judged[i] and keep[i]
+        if n_judged == 0:
+            for i in range(n):
+                keep[i] = keep[i] and not off_curve[i]
+            return keep
+        spread = 0.0
+        if n_kept > 0:
+            vals = np.empty(n_kept)
+            k = 0
+            for i in range(n):
+                if judged[i] and keep[i]:
+                    vals[k] = r[i]
+                    k += 1
+            spread = 1.4826 * _median(vals)
+        thr = max(floor, factor * spread)
+        for i in range(n):
+            keep[i] = (
+                valid[i] and not (judged[i] and r[i] > thr) and not (off_curve[i] and not judged[i])
+            )
+    return keep

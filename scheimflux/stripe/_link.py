@@ -186,6 +186,8 @@ def consistent(
     off_curve = np.zeros(valid.shape, bool)
     off_curve[x[~seed]] = True
     keep &= ~off_curve
+    if _fast.enabled and yv.dtype == np.float64:
+        return _fast.consistent_passes(yv, valid, keep, off_curve, int(half), float(floor_px))
     fits: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = []
 
     def fit(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
