@@ -31,8 +31,13 @@ import cv2
 import numpy as np
 
 from scheimflux.simulate._render_stripe import render_stripe
-from scheimflux.stripe import _fast, extract_stripe, extract_stripes, steger_sigma
+from scheimflux.stripe import extract_stripe, extract_stripes, steger_sigma
 from scheimflux.stripe._kernels import gaussian_kernels
+
+try:  # the compiled per-scan-line loops (absent from older versions of the extractor)
+    from scheimflux.stripe import _fast
+except ImportError:
+    _fast = None
 
 SHAPE = (1200, 1600)
 
@@ -99,7 +104,7 @@ def speed_table(n_frames: int) -> None:
     results["band Steger, 1 thread"] = rate(
         lambda fs: [extract_stripe(f, width_px=5) for f in fs], frames
     )
-    if _fast.AVAILABLE:  # the same frames through the NumPy reference loops
+    if _fast is not None and _fast.AVAILABLE:  # the same frames through the NumPy reference loops
         _fast.enabled = False
         try:
             results["band Steger, 1 thread, NumPy reference loops"] = rate(
@@ -126,7 +131,7 @@ def speed_table(n_frames: int) -> None:
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     print(
         "compiled per-scan-line loops: "
-        + (f"Numba {_fast.numba.__version__}" if _fast.AVAILABLE else "off (NumPy reference)")
+        + (f"Numba {_fast.numba.__version__}" if _fast and _fast.AVAILABLE else "off (NumPy)")
     )
     print(f"{'method':<58} {'frames/s':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
     for name, (fps, cps) in results.items():
