@@ -14,6 +14,9 @@ by a unit in the last place. `tests/test_stripe.py` holds both paths equal.
 Numba is optional: without it (or with `SCHEIMFLUX_NUMBA=0` in the environment) the
 NumPy reference runs. The compiled code is cached on disk (`cache=True`): the first
 call on a machine compiles it (seconds), later processes load it.
+
+(One module, longer than most: each loop here sits beside the others it shares helpers
+with, and each names the reference function it repeats, which is where to read why.)
 """
 
 from __future__ import annotations
