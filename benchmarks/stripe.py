@@ -3,9 +3,10 @@
 Accuracy: bias and RMS (px) of the centre across the stripe for band Steger, full-frame
 Steger and the grey centroid, for stripe widths 3, 5, 8 px (FWHM) and dark/low/bright
 ambient light (tilted, gently curved stripe, SNR 20, 8-bit).
-Speed: frames/s on 1600 x 1200 8-bit frames for band Steger (one thread; and the
-multi-frame API with a thread pool), and for a full-frame OpenCV Steger baseline
-(Gaussian derivative filters over the whole frame, per-column maximum) run here.
+Speed: frames/s on 1600 x 1200 8-bit frames for band Steger (one thread, with the
+compiled per-scan-line loops and with their NumPy reference; and the multi-frame API with
+a thread pool), and for a full-frame OpenCV Steger baseline (Gaussian derivative filters
+over the whole frame, per-column maximum) run here.
 Captures (issue 9): one row per realistic scene of `sf.simulate.render_capture`
 (laser on a dimmed checkerboard through the paper rig's ray tracer, circle grid,
 oblique and vertical lines, colour with white ambient light, saturated core, glints,
@@ -32,6 +33,11 @@ import numpy as np
 from scheimflux.simulate._render_stripe import render_stripe
 from scheimflux.stripe import extract_stripe, extract_stripes, steger_sigma
 from scheimflux.stripe._kernels import gaussian_kernels
+
+try:  # the compiled per-scan-line loops (absent from older versions of the extractor)
+    from scheimflux.stripe import _fast
+except ImportError:
+    _fast = None
 
 SHAPE = (1200, 1600)
 
@@ -98,6 +104,14 @@ def speed_table(n_frames: int) -> None:
     results["band Steger, 1 thread"] = rate(
         lambda fs: [extract_stripe(f, width_px=5) for f in fs], frames
     )
+    if _fast is not None and _fast.AVAILABLE:  # the same frames through the NumPy reference loops
+        _fast.enabled = False
+        try:
+            results["band Steger, 1 thread, NumPy reference loops"] = rate(
+                lambda fs: [extract_stripe(f, width_px=5) for f in fs], frames
+            )
+        finally:
+            _fast.enabled = True
     results["centroid, 1 thread"] = rate(
         lambda fs: [extract_stripe(f, width_px=5, method="centroid") for f in fs], frames
     )
@@ -115,6 +129,10 @@ def speed_table(n_frames: int) -> None:
     base = results[f"full-frame OpenCV Steger baseline ({cv2.getNumThreads()} cv2 threads)"]
     print(f"\nspeed, 1600 x 1200 8-bit, width 5 px ({n_frames} frames; baselines on {len(few)})")
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    print(
+        "compiled per-scan-line loops: "
+        + (f"Numba {_fast.numba.__version__}" if _fast and _fast.AVAILABLE else "off (NumPy)")
+    )
     print(f"{'method':<58} {'frames/s':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
     for name, (fps, cps) in results.items():
         print(f"{name:<58} {fps:>9.1f} {fps / base[0]:>6.1f}x {cps:>10.1f} {cps / base[1]:>6.1f}x")

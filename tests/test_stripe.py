@@ -375,3 +375,129 @@ def test_renderer_truth_and_validation():
         render_stripe((40, 50), ambient="dim")
     with pytest.raises(ValueError, match="increase"):
         render_stripe((40, 50), [(5.0, 1.0), (2.0, 3.0)])
+
+
+# --- the compiled per-scan-line loops (`_fast.py`) against the NumPy reference ----------
+
+_fast = pytest.importorskip("scheimflux.stripe._fast")
+needs_numba = pytest.mark.skipif(not _fast.AVAILABLE, reason="Numba is not installed")
+
+
+def _both_paths(monkeypatch, fn):
+    """`fn()` with the compiled loops and with the NumPy reference (same process)."""
+    monkeypatch.setattr(_fast, "enabled", True)
+    fast = fn()
+    monkeypatch.setattr(_fast, "enabled", False)
+    ref = fn()
+    monkeypatch.setattr(_fast, "enabled", _fast.AVAILABLE)
+    return fast, ref
+
+
+def _capture_scenes():
+    from scheimflux.simulate import render_capture
+
+    base = dict(shape=(300, 400), line_angle_deg=15.0, line_offset_px=9.0, blur_px=(0.5, 1.2))
+    for kw in (
+        {},
+        dict(target="circles"),
+        dict(line_angle_deg=50.0),
+        dict(line_angle_deg=88.0),
+        dict(colour=True, ambient=0.5),
+        dict(peak=2.5),
+        dict(glints=12),
+        dict(jpeg_quality=85),
+    ):
+        on, _ = render_capture(seed=3, **{**base, **kw})
+        off, _ = render_capture(seed=3, laser_on=False, **{**base, **kw})
+        yield on, off
+
+
+@needs_numba
+def test_compiled_equals_numpy_reference(monkeypatch):
+    # The compiled loops repeat the reference's arithmetic in the same order and
+    # precision; only arctan2/sin/cos of the normal's angle may differ by an ulp
+    # (~1e-16 rad), which moves a centre by far less than 1e-6 px. So: the same valid
+    # set, segments and saturation flags, and centres, strengths, widths within 1e-6.
+    cases = []
+    for width, ambient, seed in ((3, "dark", 0), (5, "low", 1), (8, "bright", 2), (12, "low", 3)):
+        img, _ = render_stripe(
+            SHAPE, CENTRES["curved"], width_px=width, peak=0.4, ambient=ambient,
+            noise_sigma=0.02, seed=seed,
+        )  # fmt: skip
+        cases += [(img, {}), (img, {"width_px": width}), (img.T.copy(), {})]
+        cases += [(img.astype(np.float32) / 255, {"band_px": 12})]
+    for on, off in _capture_scenes():
+        cases += [(on, {}), (on, {"background": off})]
+    n_valid = 0
+    for img, kw in cases:
+        fast, ref = _both_paths(monkeypatch, lambda: extract_stripe(img, **kw))
+        np.testing.assert_array_equal(fast.valid, ref.valid)
+        np.testing.assert_array_equal(fast.segment, ref.segment)
+        np.testing.assert_array_equal(fast.saturated, ref.saturated)
+        np.testing.assert_allclose(fast.uv, ref.uv, rtol=0, atol=1e-6, equal_nan=True)
+        for name in ("strength", "width", "confidence"):
+            a, b = getattr(fast, name), getattr(ref, name)
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9, equal_nan=True)
+        n_valid += int(ref.valid.sum())
+    assert n_valid > 10_000  # the comparison covered real centres
+
+
+@needs_numba
+def test_compiled_windowed_median_and_local_fit(monkeypatch):
+    from scheimflux.stripe import _coarse, _link, _ridge
+
+    rng = np.random.default_rng(5)
+    for n, p_ok in ((1, 1.0), (7, 0.5), (40, 1.0), (400, 1.0), (400, 0.7), (400, 0.05)):
+        values = rng.normal(size=n).round(1)  # ties among the values
+        ok = rng.random(n) < p_ok
+        fast, ref = _both_paths(monkeypatch, lambda: _coarse._windowed_median(values, ok, 15))
+        np.testing.assert_array_equal(fast, ref)
+    small = rng.integers(0, 4, (60, 90)).astype(np.float32)  # many ties
+    for d in (2, 3, 5):
+        np.testing.assert_array_equal(
+            _fast.ridge_rows(small, d), _ridge.ridge_response(small, d, 0)
+        )
+    np.testing.assert_array_equal(_fast.column_argmax(small), np.argmax(small, axis=0))
+    y = 100 + 0.1 * np.arange(500) + rng.normal(size=500)
+    w = (rng.random((2, 500)) < 0.8).astype(np.float64)
+    (pf, cf), (pr, cr) = _both_paths(monkeypatch, lambda: _link._local_fit(y, w, 40))
+    np.testing.assert_array_equal(cf, cr)
+    np.testing.assert_allclose(pf, pr, rtol=1e-12, atol=1e-9, equal_nan=True)
+
+
+@needs_numba
+def test_compiled_link_segments(monkeypatch):
+    from scheimflux.stripe import _link
+
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        n = int(rng.integers(1, 600))
+        # a line with jumps, gaps and stray points
+        y = np.cumsum(rng.normal(0, 0.5, n)) + 30 * (rng.random(n) < 0.05)
+        valid = rng.random(n) < rng.uniform(0.3, 1.0)
+        strength = rng.uniform(0, 2, n)
+        kw = dict(
+            max_jump_px=float(rng.uniform(0.5, 3)), max_gap=int(rng.integers(0, 4)),
+            min_points=int(rng.integers(1, 20)), high=float(rng.uniform(0, 2)),
+            trim=int(rng.integers(0, 5)), min_line=int(rng.integers(0, 60)),
+        )  # fmt: skip
+        yy = np.where(valid, y, np.nan)
+        fast, ref = _both_paths(monkeypatch, lambda: _link.link_segments(yy, valid, strength, **kw))
+        np.testing.assert_array_equal(fast[0], ref[0])
+        np.testing.assert_array_equal(fast[1], ref[1])
+
+
+@needs_numba
+def test_compiled_consistent(monkeypatch):
+    from scheimflux.stripe import _link
+
+    rng = np.random.default_rng(11)
+    for trial in range(30):
+        n = int(rng.integers(10, 900))
+        x = np.arange(n)
+        y = 200 + 0.05 * x + 20 * np.sin(x / rng.uniform(50, 400)) + rng.normal(0, 0.1, n)
+        stray = rng.random(n) < rng.uniform(0, 0.2)  # runs and points off the line
+        y = np.where(stray, y + rng.normal(0, 8, n), y)
+        valid = rng.random(n) < rng.uniform(0.4, 1.0)
+        fast, ref = _both_paths(monkeypatch, lambda: _link.consistent(y, valid))
+        np.testing.assert_array_equal(fast, ref)

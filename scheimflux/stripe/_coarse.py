@@ -13,6 +13,7 @@ import math
 import cv2
 import numpy as np
 
+from . import _fast
 from ._ridge import ridge_offset, ridge_response
 
 #: Downsampling factor of the coarse image along both axes.
@@ -63,6 +64,8 @@ def _windowed_median(values: np.ndarray, ok: np.ndarray, window: int) -> np.ndar
     """Median of the `ok` entries in a centred sliding window; NaN where there are none."""
     half = window // 2
     n = values.size
+    if _fast.enabled and n > 0 and values.dtype == np.float64 and np.isfinite(values).all():
+        return _fast.windowed_median(values, np.ascontiguousarray(ok, np.bool_), window)
     if n >= 4 * half and ok.all():
         # the common case: full windows away from the ends take a partial sort; the ends
         # (windows reaching past them) are those of the general case on the end pieces
@@ -109,11 +112,13 @@ def coarse_track(
     hs, ws = small.shape
     d = ridge_offset(width_px)
     # Two-sided ridge response (a step edge gives none), zero outside the mask.
-    ridge = ridge_response(small, d, 0)
+    fast = _fast.enabled and small.dtype == np.float32 and hs > 2 * d
+    ridge = _fast.ridge_rows(small, d) if fast else ridge_response(small, d, 0)
     if mask_small is not None:
         ridge = np.where(mask_small, ridge, 0.0).astype(np.float32)
 
-    idx = np.argmax(ridge, axis=0)  # first maximum per scan line
+    # first maximum per scan line
+    idx = _fast.column_argmax(ridge) if fast else np.argmax(ridge, axis=0)
     cols = np.arange(ws)
     resp = ridge[idx, cols]
 

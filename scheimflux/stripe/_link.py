@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _fast
 from ._image import _median
 
 
@@ -40,6 +41,12 @@ def link_segments(
     - `min_line`: if no segment spans this many scan lines, the frame holds no line
       (glints and short reflections alone): nothing is kept.
     """
+    if _fast.enabled and y.ndim == 1 and y.dtype == strength.dtype == np.float64:
+        return _fast.link_segments(
+            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
+            np.ascontiguousarray(strength, np.float64), float(max_jump_px), int(max_gap),
+            int(min_points), float(high), int(trim), int(min_line),
+        )  # fmt: skip
     idx = np.flatnonzero(valid)
     labels = np.full(y.shape, -1, np.intp)
     if idx.size == 0:
@@ -90,6 +97,11 @@ def _local_fit(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.
     n = y.size
     single = w.ndim == 1
     w = np.atleast_2d(w)
+    if _fast.enabled and n > 0 and half > 0:
+        pred, count = _fast.local_fit(
+            np.ascontiguousarray(y, np.float64), np.ascontiguousarray(w, np.float64), int(half)
+        )
+        return (pred[0], count[0]) if single else (pred, count)
     u = np.arange(n, dtype=np.float64) / half
     yw = np.where(w > 0, y, 0.0) * w
     # windowed sums of w u^k (k <= 4) and w y u^k (k <= 2) from one cumulative sum
@@ -174,6 +186,8 @@ def consistent(
     off_curve = np.zeros(valid.shape, bool)
     off_curve[x[~seed]] = True
     keep &= ~off_curve
+    if _fast.enabled and yv.dtype == np.float64:
+        return _fast.consistent_passes(yv, valid, keep, off_curve, int(half), float(floor_px))
     fits: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]] = []
 
     def fit(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

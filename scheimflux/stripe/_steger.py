@@ -26,6 +26,7 @@ import math
 import cv2
 import numpy as np
 
+from . import _fast
 from ._kernels import FWHM_PER_SIGMA, gaussian_kernels, kernel_radius, steger_sigma
 
 _TILE = 64
@@ -322,12 +323,27 @@ def _tiles(scan: np.ndarray, centre: np.ndarray, half: int, r: int):
     view = np.lib.stride_tricks.as_strided(
         scan, (h, scan.shape[1] - tile_w + 1, tile_w), (sh, sw, sw), writeable=False
     )
-    comp = view[rows, start[None, :]].reshape(height, n_tiles * tile_w)
-    comp = comp.astype(np.float32, copy=False)
+    if _fast.enabled:
+        comp = _fast.tile_rows(scan, rows, start, tile_w)
+    else:
+        comp = view[rows, start[None, :]].reshape(height, n_tiles * tile_w)
+        comp = comp.astype(np.float32, copy=False)
     cols = np.arange(w)
     tile = cols // _TILE
     ccol = tile * tile_w + cols - start[tile]
     return comp, top[tile], ccol
+
+
+def _gather_window(images: list[np.ndarray], row0: np.ndarray, ccol: np.ndarray, k: int):
+    """Per scan line `j` the rows `row0[j] .. row0[j] + k - 1` of column `ccol[j]` of
+    each (C-contiguous) image: a list of (k, W) arrays."""
+    if _fast.enabled:
+        out = [_fast.gather_rows(a, row0, ccol, k) for a in images]
+        if all(ok for _, ok in out):
+            return [a for a, _ in out]
+    n_cols = images[0].shape[1]
+    flat = (row0 * n_cols + ccol)[None, :] + (np.arange(k) * n_cols)[:, None]
+    return [np.take(a, flat) for a in images]
 
 
 def steger_band(
@@ -367,11 +383,11 @@ def steger_band(
     n_cols = comp.shape[1]
     inner = comp[crop : comp.shape[0] - crop]
     reach = k_search + r
-    base = (centre - top_c - crop - reach) * n_cols + ccol
-    flat = base[None, :] + (np.arange(2 * reach + 1) * n_cols)[:, None]
-    g0 = np.take(h0[crop : comp.shape[0] - crop], flat)
-    g1 = np.take(rows_pass(inner, k1), flat)
-    g2 = np.take(rows_pass(inner, k2), flat)
+    g = _gather_window(
+        [h0[crop : comp.shape[0] - crop], rows_pass(inner, k1), rows_pass(inner, k2)],
+        centre - top_c - crop - reach, ccol, 2 * reach + 1,
+    )  # fmt: skip
+    g0, g1, g2 = g
     keep = slice(r, r + 2 * k_search + 1)
     d = [
         cols_pass(g1, k0)[keep],
@@ -381,8 +397,16 @@ def steger_band(
         cols_pass(g0, k2)[keep],
     ]
     rows = centre[None, :] + np.arange(-k_search, k_search + 1)[:, None]
-    flat_s = (rows - top_c[None, :]) * n_cols + ccol[None, :]
-    win = [np.take(smooth, flat_s)] + d
+    win = _gather_window([smooth], centre - top_c - k_search, ccol, 2 * k_search + 1) + d
+    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
+    if _fast.enabled and w >= _NORMAL_WINDOW:
+        # the steps below in one compiled pass (same arithmetic: `_fast.py`)
+        y, strength, width, found, row, asym, ny, ok = _fast.band_lines(
+            *win, rows, smooth, top_c, ccol, 1, 2 * k_search, bg_off, sigma, s_total,
+            bg_off, _INSIDE, FWHM_PER_SIGMA, _NORMAL_WINDOW,
+        )  # fmt: skip
+        if ok and found.any():
+            return ScanLines(y, strength, width, found, row, asym, ny)
     # Background samples beside the strongest line point (as in the full frame).
     selection = _select(win, 1, 2 * k_search)
     cols = np.arange(w)
@@ -390,7 +414,6 @@ def steger_band(
     bg_crow = best_row[None, :] + np.array([-bg_off, bg_off])[:, None] - top_c[None, :]
     bg2 = np.take(smooth, bg_crow * n_cols + ccol)
     res, bg, grad_y, ny = _evaluate(win, rows, selection, bg2, bg_off, sigma)
-    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
 
     def sample(rr, cc):
         crow_s = np.clip(rr - top_c, 0, comp.shape[0] - 1)
