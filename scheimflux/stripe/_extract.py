@@ -411,11 +411,8 @@ def _extract_one(
             # The plateau's pass: on the signal before any albedo normalisation (a clipped
             # pixel holds no albedo x laser product: divided by the laser-off level, the
             # plateau would step by the albedo ratio where the line crosses a checker
-            # edge), with the asymmetry bound held at the shift in pixels it allows a
-            # line of the default width (~0.25 px: the asymmetry of a given shift falls
-            # as the profile widens).
-            asym_max = ASYMMETRY_MAX * min(_profile_std(_DEFAULT_WIDTH) / _profile_std(wide), 1.0)
-            lines2, valid2, _ = run(wide, unnormalised, asym_max)
+            # edge).
+            lines2, valid2, _ = run(wide, unnormalised)
             lines = ScanLines(
                 y=np.where(saturated, lines2.y, lines.y),
                 strength=np.where(saturated, lines2.strength, lines.strength),
@@ -426,17 +423,31 @@ def _extract_one(
                 ny=None if lines.ny is None else np.where(saturated, lines2.ny, lines.ny),
             )
             valid = np.where(saturated, valid2, valid)
-            if off_level is None:  # the laser-on image 2 FWHM beyond the rims
-                even, left, right = _rims_even(
+            # The strict tests: the asymmetry bound held at the shift in pixels it allows
+            # a line of the default width (~0.25 px: the asymmetry of a given shift falls
+            # as the profile widens), and the same albedo at both rims.
+            asym_max = ASYMMETRY_MAX * min(_profile_std(_DEFAULT_WIDTH) / _profile_std(wide), 1.0)
+            even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
+            if off_level is None:
+                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims,
+                # and for the scan lines the first pass refused, no albedo change along
+                # the line nearby either (a line along a narrow white strip between black
+                # ones, as on a ChArUco board, has a symmetric plateau 1 px off the line,
+                # with black on both sides). The ones the first pass accepted keep the
+                # plateau pass's own tests: the line is kept in images of a board where
+                # albedo edges lie near it everywhere (a grey or colour single image of
+                # board and line, where the capture needs it to drop the corners near it).
+                rims, left, right = _rims_even(
                     gather, flat_sat, lines.y, plateau, lines.ny, 2.0 * width,
                     max(3.0 * noise, RIM_FLOOR * sat_level), shape[0],
                 )  # fmt: skip
                 reach = int(math.ceil(np.median(plateau[saturated]) + 4.0 * width))
-                even &= first_pass | _plain_surroundings(
+                even &= rims & _plain_surroundings(
                     left, right, saturated & np.isfinite(lines.y), reach, 3.0 * noise
                 )
+                even |= first_pass
             else:  # the laser-off image at the rims themselves (2 px in to 2 px out)
-                even = _rims_even(
+                even &= _rims_even(
                     gather, off_level.reshape(-1), lines.y, plateau, lines.ny, -2.0,
                     3.0 * estimate_noise(off_level), shape[0],
                 )[0]  # fmt: skip
