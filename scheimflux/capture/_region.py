@@ -109,13 +109,6 @@ def board_stripe(
         candidates = [(image, background)]
     else:
         candidates = [(fill_holes(image, holes, axis), background) for axis in (1, 0)]
-    if background is not None and np.ndim(image) == np.ndim(background) == 2:
-        # the plain difference as well: on full-sensor grey single images with a
-        # laser-off image the extractor's own background path refused every centre
-        # (0 of ~900 per view), the plain difference kept them all on the exact line
-        # (0.06 px RMS; end-to-end checkerboard, views 1, 4, 7)
-        diff = np.asarray(image, np.float32) - np.asarray(background, np.float32)
-        candidates.append((diff, None))
     best = None
     for img, bg in candidates:
         result = extract_stripe(img, width_px=width_px, mask=mask, background=bg)

@@ -15,6 +15,7 @@ from ._centroid import centroid_band
 from ._channel import pick_channel
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, as_image, channel_image, estimate_noise
+from ._kernels import FWHM_PER_SIGMA, steger_sigma
 from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
@@ -36,8 +37,93 @@ WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
 # three minimum segments): glints and short reflections alone are not a line.
 MIN_LINE_FRACTION = 0.05
+# Largest |log| of the ratio of the albedo levels at a clipped plateau's two rims (see
+# `_rims_even`): 0.15 (16 % more light on one side) moves the plateau's centre by
+# ~0.05 px on a 5 px line clipped 100-fold (rim shift s² / y_rim per unit log albedo).
+RIM_RATIO_MAX = 0.15
+# ... levels below this fraction of the clipping level (or 3 noise stds) count as it: a
+# surface that dark shows its albedo too faintly (and the line's far tail, ~1 % of the
+# clipped level 2 FWHM out, would count as one).
+RIM_FLOOR = 0.05
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
+
+
+def _profile_std(width: float) -> float:
+    """Std (px) of a line of FWHM `width` smoothed by Steger's Gaussian for it."""
+    return math.hypot(width / FWHM_PER_SIGMA, steger_sigma(width))
+
+
+def _rims_even(gather, flat, y, plateau, ny, gap, floor, n_rows):
+    """Scan lines whose clipped plateau has the same albedo at both rims.
+
+    A clipped line's plateau ends where albedo x (ambient + laser) reaches the sensor's
+    full scale: over a darker albedo that happens nearer the centre. Where the line runs
+    along an albedo edge (a checker or marker border between its rims), the plateau is
+    then shifted off the line's centre by up to ~2 px while it stays perfectly
+    symmetric in shape, so no profile test sees it. The albedo on either side is read
+    `gap` px (along the line's normal) beyond each rim, as the mean of 5 samples a pixel
+    apart, linearly interpolated at positions symmetric about the centre: a plateau is
+    kept when the two differ by at most `RIM_RATIO_MAX` (levels under `floor` count as
+    `floor`). The caller passes the laser-off image at the rims themselves, or the
+    laser-on image beyond the line's reach (where its level does not move with the
+    centre's own error)."""
+    cols = np.arange(y.size)
+    yc = np.nan_to_num(y, nan=0.0)
+    out = 0.5 * plateau + gap / np.maximum(np.abs(np.nan_to_num(ny, nan=1.0)), 0.5)
+    off = out[None, :] + np.arange(5)[:, None]  # 5 samples a pixel apart on each side
+
+    def level(pos):  # mean of the linearly interpolated samples (exactly symmetric)
+        lo = np.floor(pos)
+        f = pos - lo
+        lo = np.clip(lo.astype(np.intp), 0, n_rows - 2)
+        return ((1 - f) * gather(lo, cols, flat) + f * gather(lo + 1, cols, flat)).mean(0)
+
+    left, right = level(yc[None, :] - off), level(yc[None, :] + off)
+    inside = (yc - off[-1] >= 0) & (yc + off[-1] <= n_rows - 1)
+    ratio = np.abs(np.log(np.maximum(left, floor) / np.maximum(right, floor)))
+    return inside & np.isfinite(y) & (ratio <= RIM_RATIO_MAX), left, right
+
+
+def _plain_surroundings(left, right, ok, reach, floor):
+    """Scan lines whose albedo levels beside the line (`left`, `right`, valid at `ok`)
+    stay within `RIM_RATIO_MAX` (in log) over the `reach` scan lines on either side:
+    no albedo edge near the line at all (levels under `floor` count as `floor`)."""
+    n = left.size
+    if n < 2 * reach + 1:
+        return np.zeros(n, bool)
+    out = np.ones(n, bool)
+    for lev in (left, right):
+        v = np.where(ok, np.log(np.maximum(lev, floor)), np.nan)
+        win = np.lib.stride_tricks.sliding_window_view(
+            np.pad(v, reach, constant_values=np.nan), 2 * reach + 1
+        )
+        count = np.count_nonzero(np.isfinite(win), axis=1)
+        hi = np.max(np.where(np.isfinite(win), win, -np.inf), axis=1)
+        lo = np.min(np.where(np.isfinite(win), win, np.inf), axis=1)
+        out &= (count >= reach) & (hi - lo <= RIM_RATIO_MAX)
+    return out & ok
+
+
+def _block_noise(img: np.ndarray, n_rows: int = 16) -> float:
+    """Pixel-noise std (grey levels) measured on 2 x 2 block means (twice their robust
+    std, as `estimate_noise`): the same as the pixel estimate for white noise, but not
+    fooled by JPEG, which removes the noise at the pixel scale (its second differences)
+    and leaves it, and its block artefacts, at coarser ones: at quality 85 the pixel
+    estimate reads 0.3 grey levels where the renderer put 1.2 (this one reads 0.9)."""
+    h, w = img.shape[:2]
+    if h < 4 or w < 6:
+        return 0.0
+    step = max((h - 1) // n_rows, 2)
+    top = np.arange(0, h - 1, step)[:n_rows]
+    pair = img[top].astype(np.float32) + img[top + 1].astype(np.float32)
+    w2 = (w // 2) * 2
+    block = 0.25 * (pair[:, 0:w2:2] + pair[:, 1:w2:2])
+    d = np.abs(block[:, :-2] - 2.0 * block[:, 1:-1] + block[:, 2:]).reshape(-1)
+    # the RMS of the 90 % smallest (edges and the line are few), scaled to a Gaussian's
+    # std (1 / sqrt(0.623)): unlike the median, not stuck to the grey-level steps
+    d = np.sort(d)[: max(int(0.9 * d.size), 1)]
+    return 2.0 * 1.267 * float(np.sqrt(np.mean(d * d))) / math.sqrt(6.0)
 
 
 def _empty(n: int, orientation: str, method: str, **extra) -> StripeResult:
@@ -74,8 +160,9 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
 
 
 def _signal(image, background, channel, width, normalise):
-    """The 2-D signal image, the plain image whose clipping marks saturation, and the
-    channel used."""
+    """The 2-D signal image, the plain image whose clipping marks saturation, the
+    channel used, the signal before the albedo normalisation (the signal itself
+    without one) and the plain laser-off channel (None without one)."""
     img = as_image(image)
     if background is not None:
         off = as_image(background, name="background")
@@ -89,13 +176,15 @@ def _signal(image, background, channel, width, normalise):
     elif img.ndim == 2 and channel != "grey":
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
+    plain, off_level = sig, None
     if background is not None:
         base, level = channel_image(off, channel)
         base = _denoised(base.astype(np.float32))
-        sig = sig.astype(np.float32) - base
+        sig = plain = sig.astype(np.float32) - base
+        off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
             sig = _albedo_normalised(sig, level.astype(np.float32))
-    return sig, sat, channel
+    return sig, sat, channel, plain, off_level
 
 
 def _denoised(off: np.ndarray) -> np.ndarray:
@@ -222,7 +311,9 @@ def _extract_one(
     """`extract_stripe` on one signal (laser-on image, or its laser-off difference)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel = _signal(image, background, channel, width, normalise_background)
+    img, sat_img, channel, unnormalised, off_level = _signal(
+        image, background, channel, width, normalise_background
+    )
     roi = as_mask(mask, img.shape)
     small = downsample(img)
     mask_small = None
@@ -242,10 +333,8 @@ def _extract_one(
     if orientation == "vertical-scan":
         shape = img.shape
         stride_y, stride_x = img.shape[1], 1
-        scan_view = img
     else:
         shape = img.shape[::-1]
-        scan_view = img.T
         small = np.ascontiguousarray(small.T)
         if mask_small is not None:
             mask_small = np.ascontiguousarray(mask_small.T)
@@ -271,17 +360,19 @@ def _extract_one(
     if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
         sat_level = float(sat_img.max())
 
-    def run(w: float) -> tuple[ScanLines, np.ndarray, float]:
+    def run(w: float, source=img, asym_max=ASYMMETRY_MAX) -> tuple[ScanLines, np.ndarray, float]:
         if method == "centroid":
-            lines = centroid_band(gather, shape, coarse.centre, w)
+            flat_s = source.reshape(-1)
+            lines = centroid_band(lambda r, c: gather(r, c, flat_s), shape, coarse.centre, w)
             noise_level = 6.0 * noise
         else:
+            scan = source if orientation == "vertical-scan" else source.T
             if band_px is None:
-                scan = img if orientation == "vertical-scan" else np.ascontiguousarray(img.T)
-                lines = steger_full(scan, w, coarse.centre, coarse.tolerance)
+                lines = steger_full(np.ascontiguousarray(scan), w, coarse.centre,
+                                    coarse.tolerance)  # fmt: skip
             else:
                 band = None if band_px == "auto" else int(band_px)
-                lines = steger_band(scan_view, coarse.centre, w, band)
+                lines = steger_band(scan, coarse.centre, w, band)
             sigma = max(w / (2.0 * math.sqrt(3.0)), 0.7)
             # Std of sigma² G''*noise for white noise is sqrt(3 / (16 pi)) noise / sigma.
             noise_level = 8.0 * 0.2443 * noise / sigma
@@ -291,38 +382,58 @@ def _extract_one(
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
         valid &= (y >= -0.5) & (y <= shape[0] - 0.5)
         if lines.asym is not None:
-            valid &= np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= ASYMMETRY_MAX
+            valid &= np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
         return lines, valid, thr
 
     def clipped(lines: ScanLines, valid: np.ndarray) -> np.ndarray:
-        """Valid centres with at least two clipped pixels among the three at the peak."""
+        """Scan lines of `valid` with at least two clipped pixels among the three at the
+        peak (the chosen line point's row; the coarse track's where none was found)."""
         if sat_level is None or not valid.any():
             return np.zeros(shape[1], bool)
-        row = np.clip(lines.row.astype(np.intp), 0, shape[0] - 1)
-        near_rows = np.clip(row[None, :] + np.arange(-1, 2)[:, None], 0, shape[0] - 1)
-        near = gather(near_rows, np.arange(shape[1]), flat_sat)
-        return valid & (np.count_nonzero(near >= sat_level, axis=0) >= 2)
+        out = np.zeros(shape[1], bool)
+        for at in (np.where(lines.found, lines.row, coarse.centre), coarse.centre):
+            row = np.clip(np.rint(at).astype(np.intp), 0, shape[0] - 1)
+            near_rows = np.clip(row[None, :] + np.arange(-1, 2)[:, None], 0, shape[0] - 1)
+            near = gather(near_rows, np.arange(shape[1]), flat_sat)
+            out |= np.count_nonzero(near >= sat_level, axis=0) >= 2
+        return valid & out
 
     lines, valid, thr = run(width)
     if width_px is None:
         # the width of the unclipped part of the line (a clipped core looks wider)
-        plain = valid & ~clipped(lines, valid) & np.isfinite(lines.width)
+        plain = valid & ~clipped(lines, coarse.support | valid) & np.isfinite(lines.width)
         if plain.sum() >= 8:
             measured = float(np.median(lines.width[plain]))
             if math.isfinite(measured) and abs(measured - width) > 0.3 * width:
                 width = min(max(measured, 1.5), 100.0)
                 lines, valid, thr = run(width)
 
-    saturated = clipped(lines, valid)
+    # Clipped scan lines. With a laser-off image every one on the track, accepted or
+    # not: the first pass, at the unclipped line's width, refuses most of a wide flat
+    # top (its second derivative vanishes on the plateau and the line points it finds
+    # sit on the plateau's rims); the plateau's own pass decides, and the laser-off
+    # image shows the albedo at the plateau's rims (`_rims_even`). Without one, only
+    # the ones the first pass accepted: the laser-on image cannot show an albedo edge
+    # right under a rim (a line along a narrow white strip between black ones, as on a
+    # ChArUco board: a symmetric plateau 1 px off the line).
+    first_pass = valid
+    saturated = clipped(lines, coarse.support)
     if saturated.any():
         cols = np.arange(shape[1])
-        row = np.clip(lines.row.astype(np.intp), 0, shape[0] - 1)
+        row = np.clip(np.rint(coarse.centre).astype(np.intp), 0, shape[0] - 1)
         if method == "steger" and saturated.any():
             reach = int(math.ceil(4 * width)) + FACTOR
             rows = np.clip(row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1)
             plateau = np.count_nonzero(gather(rows, cols, flat_sat) >= sat_level, axis=0)
-            wide = float(np.median(plateau[saturated])) + width
-            lines2, valid2, _ = run(wide)
+            # the plateau's width from the clipped scan lines the first pass accepted
+            # (surely the line), from all clipped ones where fewer than 8
+            sure = saturated & first_pass if (saturated & first_pass).sum() >= 8 else saturated
+            wide = float(np.median(plateau[sure])) + width
+            # The plateau's pass: on the signal before any albedo normalisation (a clipped
+            # pixel holds no albedo x laser product: divided by the laser-off level, the
+            # plateau would step by the albedo ratio where the line crosses a checker
+            # edge).
+            lines2, valid2, _ = run(wide, unnormalised)
             lines = ScanLines(
                 y=np.where(saturated, lines2.y, lines.y),
                 strength=np.where(saturated, lines2.strength, lines.strength),
@@ -330,8 +441,38 @@ def _extract_one(
                 found=np.where(saturated, lines2.found, lines.found),
                 row=lines.row,
                 asym=None if lines.asym is None else np.where(saturated, lines2.asym, lines.asym),
+                ny=None if lines.ny is None else np.where(saturated, lines2.ny, lines.ny),
             )
             valid = np.where(saturated, valid2, valid)
+            # The strict tests: the asymmetry bound held at the shift in pixels it allows
+            # a line of the default width (~0.25 px: the asymmetry of a given shift falls
+            # as the profile widens), and the same albedo at both rims.
+            asym_max = ASYMMETRY_MAX * min(_profile_std(_DEFAULT_WIDTH) / _profile_std(wide), 1.0)
+            even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
+            if off_level is None:
+                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims,
+                # and for the scan lines the first pass refused, no albedo change along
+                # the line nearby either (a line along a narrow white strip between black
+                # ones, as on a ChArUco board, has a symmetric plateau 1 px off the line,
+                # with black on both sides). The ones the first pass accepted keep the
+                # plateau pass's own tests: the line is kept in images of a board where
+                # albedo edges lie near it everywhere (a grey or colour single image of
+                # board and line, where the capture needs it to drop the corners near it).
+                rims, left, right = _rims_even(
+                    gather, flat_sat, lines.y, plateau, lines.ny, 2.0 * width,
+                    max(3.0 * noise, RIM_FLOOR * sat_level), shape[0],
+                )  # fmt: skip
+                reach = int(math.ceil(np.median(plateau[saturated]) + 4.0 * width))
+                even &= rims & _plain_surroundings(
+                    left, right, saturated & np.isfinite(lines.y), reach, 3.0 * noise
+                )
+                even |= first_pass
+            else:  # the laser-off image at the rims themselves (2 px in to 2 px out)
+                even &= _rims_even(
+                    gather, off_level.reshape(-1), lines.y, plateau, lines.ny, -2.0,
+                    3.0 * estimate_noise(off_level), shape[0],
+                )[0]  # fmt: skip
+            valid &= ~saturated | even
             saturated &= valid
 
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
@@ -345,8 +486,14 @@ def _extract_one(
 
     y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
     if method == "steger" and widths.size >= 8:
+        # the step fit's residual test needs the noise that is in the profiles: JPEG
+        # keeps it at block scale (`_block_noise`), where it reads well above the pixel
+        # estimate (2-3x at quality 95-85; 1.1-1.2x without compression, where the
+        # pixel estimate stays)
+        block = _block_noise(img)
+        fit_noise = block if block > 1.5 * noise else noise
         y_fit, valid, refit_sigma = refit_steps(
-            gather, shape, lines, valid, saturated, coarse, med, noise
+            gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
     x = np.arange(shape[1], dtype=np.float64)
     y = np.where(valid, y_fit, np.nan)
