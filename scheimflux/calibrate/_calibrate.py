@@ -24,7 +24,7 @@ from ._rejection import _left_out_indices, _outliers, _rejection_passes, _withou
 from ._result import Calibration
 from ._solve import least_squares
 from ._stage import _gauge_rms, calibrate_stage
-from ._stage_table import stage_extra_freeze, table_target_rms_px, table_target_start
+from ._stage_table import stage_extra_freeze, table_target_start
 
 
 def calibrate(
@@ -198,8 +198,6 @@ def calibrate(
         sensor_size=(int(obs.width), int(obs.height)),
         left_out=left_out,
     )
-    if table_pose is not None:
-        outliers["table_target_rms_px"] = table_target_rms_px(params, data)
     return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw)
 
 

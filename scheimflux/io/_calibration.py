@@ -302,12 +302,26 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
             "converged": all(bool(fit.converged) for fit in fits.values()),
             "frozen": list(getattr(cal, "freeze", ()) or ()),
             **_weights(cal),
+            **_table_target(cal),
         }
     )
     diag.update(diagnostics or {})
     doc["diagnostics"] = _jsonable(diag)
     doc["software"] = {"name": "scheimflux", "version": _version()}
     return doc
+
+
+def _table_target(cal) -> dict:
+    """`{"table_target": {"steps", "rms_px"}}` of a stage calibrated with a target on the
+    table (its data at hand), else `{}`."""
+    table = getattr(getattr(cal, "data", None), "table", None)
+    if table is None or getattr(cal.params, "table_pose", None) is None:
+        return {}
+    from ..calibrate._stage_table import table_target_rms_px
+
+    steps = np.asarray(table.steps)[np.asarray(table.w).sum(axis=1) > 0]
+    rms = table_target_rms_px(cal.params, cal.data)
+    return {"table_target": {"steps": [int(i) for i in steps], "rms_px": rms}}
 
 
 def write_calibration(
