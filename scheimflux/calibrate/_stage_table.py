@@ -49,13 +49,17 @@ class TableTargetData(eqx.Module):
     """The table target's observations as arrays (weight 0 where a corner is missing).
 
     **Fields:** `board` `(M, 3)` its points; `corners` `(F, M, 2)` pixels (a finite
-    placeholder where missing); `w` `(F, M)` weights; `steps` `(F,)` table steps.
+    placeholder where missing); `w` `(F, M)` weights; `steps` `(F,)` table steps;
+    `stripe` `(F, K, 2)`, `stripe_w` `(F, K)`: the laser line on the target (padded,
+    weight 0 where there is none).
     """
 
     board: Float[Array, "M 3"]
     corners: Float[Array, "F M 2"]
     w: Float[Array, "F M"]
     steps: Float[Array, " F"]
+    stripe: Float[Array, "F K 2"]
+    stripe_w: Float[Array, "F K"]
 
 
 def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
@@ -63,11 +67,17 @@ def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
     uv = np.asarray(target.corners_px, dtype=np.float64)
     ok = np.all(np.isfinite(uv), axis=-1)
     uv = np.where(ok[..., None], uv, np.asarray(centre, dtype=np.float64))
+    from ._model import _pad
+
+    sets = list(target.stripe_px) or [np.zeros((0, 2))] * len(uv)
+    stripe, stripe_w = _pad(sets, np.asarray(centre, dtype=np.float64))
     return TableTargetData(
         board=jnp.asarray(np.asarray(target.board_points_mm, dtype=np.float64)),
         corners=jnp.asarray(uv),
         w=jnp.asarray(ok.astype(np.float64)),
         steps=jnp.asarray(np.asarray(target.table_steps, dtype=np.float64)),
+        stripe=jnp.asarray(stripe),
+        stripe_w=jnp.asarray(stripe_w),
     )
 
 
@@ -92,10 +102,31 @@ def table_target_errors_px(params, data) -> Float[Array, "F M 2"]:
 
 
 def table_target_residuals(params, data) -> Float[Array, " n"]:
-    """Reprojection errors of the table target's corners / σ_corner (u and v of each)."""
+    """Reprojection errors of the table target's corners / σ_corner (u and v of each),
+    then [`table_stripe_residuals`][]."""
     from ._model import _robustify
 
     r = table_target_errors_px(params, data).reshape(-1) / data.sigma_corner_px
+    return jnp.concatenate([_robustify(r, data.robust), table_stripe_residuals(params, data)])
+
+
+def table_stripe_residuals(params, data) -> Float[Array, " n"]:
+    """Distance (mm / σ_stripe) of each laser-line point on the table target (the
+    pixel's ray meeting the laser plane) from the target's plane at its table step: the
+    line ties the laser plane to the table target, hence to the axis."""
+    from ._model import _laser_points_safe, _robustify
+
+    t = data.table
+    st, T = params.stage, params.table_pose
+
+    def one(step, uv, w):
+        X = _laser_points_safe(params.camera, params.plane, uv)
+        Ri = st.frame_rotation(step)
+        n_c = st.R_m_c.T @ (Ri.T @ T.R[:, 2])  # the target's normal in the camera frame
+        o_c = st.R_m_c.T @ (Ri.T @ T.translation - st.t_m_c)  # its origin
+        return (X @ n_c - jnp.dot(n_c, o_c)) * w
+
+    r = jax.vmap(one)(t.steps, t.stripe, t.stripe_w).reshape(-1) / data.sigma_stripe_mm
     return _robustify(r, data.robust)
 
 

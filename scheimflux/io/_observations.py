@@ -14,6 +14,7 @@
  "stage_target": {"delta_omega_deg": 30,                                          # optional
                   "board_points_mm": [[x, y, z], ...],
                   "views": [{"table_step": 0, "corners_px": [[u, v] or null, ...],
+                             "stripe_px": [[u, v], ...],                        # optional
                              "source": ["step_000.png"]}, ...],
                   "dropped_views": [{"table_step": 4, "images": ["step_004.png"],
                                      "reason": "..."}]}}
@@ -55,7 +56,7 @@ VIEW_KEYS = ("corners_px", "stripe_px", "source")
 DROPPED_KEYS = ("view", "images", "reason")
 STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
 STAGE_TARGET_KEYS = ("delta_omega_deg", "board_points_mm", "views", "dropped_views")
-STAGE_TARGET_VIEW_KEYS = ("table_step", "corners_px", "source")
+STAGE_TARGET_VIEW_KEYS = ("table_step", "corners_px", "stripe_px", "source")
 STAGE_TARGET_DROPPED_KEYS = ("table_step", "images", "reason")
 
 
@@ -111,6 +112,8 @@ class StageTargetViews:
     - `corners_px`: `(F, M, 2)` corner pixels, NaN where not detected.
     - `sources`: per view the image names; `dropped`: the steps left out, as
       [`DroppedView`][] with `view` = the table step.
+    - `stripe_px`: per view the laser line's pixels on the target (empty: none; the
+      laser plane's distance from the target then ties the plane to the table).
     """
 
     delta_omega_deg: float
@@ -119,6 +122,7 @@ class StageTargetViews:
     corners_px: np.ndarray
     sources: tuple[tuple[str, ...], ...] = ()
     dropped: list[DroppedView] = dataclasses.field(default_factory=list)
+    stripe_px: tuple[np.ndarray, ...] = ()  # per view (K, 2): the laser line on the target
 
 
 @dataclasses.dataclass(frozen=True)
@@ -316,7 +320,7 @@ def _parse_stage_target(sd) -> StageTargetViews:
     views_doc = _require(sd, "views", "stage_target")
     if not isinstance(views_doc, list) or not views_doc:
         raise ObservationsError("stage_target.views must be a non-empty list")
-    steps, corners, sources = [], [], []
+    steps, corners, sources, stripes = [], [], [], []
     for i, vd in enumerate(views_doc):
         where = f"stage_target.views[{i}]"
         if not isinstance(vd, dict):
@@ -330,6 +334,7 @@ def _parse_stage_target(sd) -> StageTargetViews:
                 f"has {len(board)} (use null for corners that were not detected)"
             )
         corners.append(c)
+        stripes.append(_points(vd.get("stripe_px", []), f"{where}.stripe_px", 2))
         sources.append(_names(vd.get("source", []), f"{where}.source"))
     if any(b <= a for a, b in zip(steps, steps[1:])):
         raise ObservationsError(
@@ -351,8 +356,9 @@ def _parse_stage_target(sd) -> StageTargetViews:
             raise ObservationsError(f"{where}.reason must be a string")
         dropped.append(DroppedView(k, _names(dd.get("images", []), f"{where}.images"), reason))
     return StageTargetViews(
-        dw, board, np.asarray(steps, dtype=np.int64), np.stack(corners), tuple(sources), dropped
-    )
+        dw, board, np.asarray(steps, dtype=np.int64), np.stack(corners), tuple(sources), dropped,
+        tuple(stripes) if any(len(x) for x in stripes) else (),
+    )  # fmt: skip
 
 
 def _names(value, where: str) -> tuple[str, ...]:
@@ -427,6 +433,11 @@ def observations_to_dict(obs: Observations) -> dict:
                 {
                     "table_step": int(k),
                     "corners_px": _rows(np.asarray(c)),
+                    **(
+                        {"stripe_px": [r for r in _rows(np.asarray(t.stripe_px[i])) if r]}
+                        if i < len(t.stripe_px) and len(t.stripe_px[i])
+                        else {}
+                    ),
                     **(
                         {"source": list(t.sources[i])}
                         if i < len(t.sources) and t.sources[i]
