@@ -101,3 +101,109 @@ def test_scene_refuses_a_board_the_camera_cannot_see(rig):
         stage_target_scan(rig, stage, Checkerboard(5, 5, 0.4), 3)
     with pytest.raises(ValueError, match="wobble_mrad"):
         stage_target_scan(rig, stage, Checkerboard(5, 5, 0.4), 3, wobble_mrad=-1.0)
+
+
+# ----------------------------------------------------------------------------- the block
+
+
+def test_block_geometry_is_the_scenes(scan):
+    """`table_points_c` (the residual block's map: stage, table pose, step) puts the board
+    where the ray-traced scene put it, for the scene's own stage and table pose."""
+    from scheimflux.calibrate._stage_table import table_points_c
+
+    for k, i in enumerate(scan.frame_index):
+        X = np.asarray(
+            table_points_c(scan.stage, scan.T_t_b, jnp.asarray(scan.board.points_mm), float(i))
+        )
+        assert np.abs(X - scan.views[k].points_c).max() < 1e-9
+
+
+def _target_views(scan, steps=None, dw_deg=30.0):
+    from scheimflux.io import StageTargetViews
+
+    px, _ = scan.corners()
+    steps = scan.frame_index if steps is None else np.asarray(steps)
+    return StageTargetViews(dw_deg, scan.board.points_mm, steps, px[: len(steps)])
+
+
+def _obs(rig, views):
+    from scheimflux.io import Observations
+    from scheimflux.simulate import nominal_of
+
+    w, h = rig.sensor_size
+    return Observations(
+        int(w), int(h), (float(rig.dx), float(rig.dy)), np.zeros((4, 3)), [],
+        nominal_of(rig), stage_target=views,
+    )  # fmt: skip
+
+
+def test_observations_file_keeps_the_table_target(rig, scan, tmp_path):
+    from scheimflux.io import DroppedView, read_observations, write_observations
+
+    views = _target_views(scan)
+    views = type(views)(
+        30.0, views.board_points_mm, views.table_steps[[0, 1, 3]], views.corners_px[[0, 1, 3]],
+        (("a.png",), ("b.png",), ("d.png",)), [DroppedView(2, ("c.png",), "not found")],
+    )  # fmt: skip
+    path = tmp_path / "obs.json"
+    write_observations(path, _obs(rig, views))
+    back = read_observations(path).stage_target
+    assert back.delta_omega_deg == 30.0
+    np.testing.assert_array_equal(back.table_steps, [0, 1, 3])
+    np.testing.assert_array_equal(back.corners_px, views.corners_px)  # NaN where not seen
+    assert back.sources[2] == ("d.png",)
+    assert back.dropped[0].view == 2 and back.dropped[0].reason == "not found"
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d["stage_target"].update(delta_omega_deg=0), "non-zero"),
+        (lambda d: d["stage_target"]["views"][1].update(table_step=0), "not strictly increasing"),
+        (lambda d: d["stage_target"]["views"][0].update(table_step=-1), "table step >= 0"),
+        (lambda d: d["stage_target"].update(spam=1), "spam"),
+        (
+            lambda d: d["stage_target"].update(dropped_views=[{"table_step": 1, "reason": "x"}]),
+            "also a kept view",
+        ),
+    ],
+)
+def test_observations_file_refuses_bad_table_targets(rig, scan, edit, message):
+    from scheimflux.io import ObservationsError
+    from scheimflux.io._observations import observations_to_dict, parse_observations
+
+    doc = observations_to_dict(_obs(rig, _target_views(scan)))
+    parse_observations(doc)
+    edit(doc)
+    with pytest.raises(ObservationsError, match=message):
+        parse_observations(doc)
+
+
+def test_start_refuses_wrong_order_and_wrong_step(rig, scan):
+    """The start of the block (per-view poses with a camera held, then the closed form)
+    says in one line that the views are not in table order or Δω is wrong. The camera is
+    the rig's paraxial model: good enough for poses, not the truth."""
+    from scheimflux.calibrate._stage_table import initial_table_target
+    from scheimflux.camera import ThickLensScheimpflug
+
+    cam = ThickLensScheimpflug(**rig.nominal_thick_lens_params())
+    init = initial_table_target(cam, _obs(rig, _target_views(scan)))
+    assert init.step_deg == pytest.approx(30.0, abs=0.05)
+    d_true = np.asarray(scan.stage.R_m_c)[2]
+    # the paraxial model's depth error tilts the poses: the start is within ~10 mrad
+    assert _angle(np.asarray(init.stage.R_m_c)[2], d_true) < 0.02
+    px, _ = scan.corners()
+    swapped = _target_views(scan)
+    swapped = type(swapped)(30.0, swapped.board_points_mm, swapped.table_steps,
+                            px[[0, 1, 5, 3, 4, 2, 6, 7, 8, 9, 10, 11]])  # fmt: skip
+    with pytest.raises(ValueError, match=r"table order") as err:
+        initial_table_target(cam, _obs(rig, swapped))
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=r"stated 20.000°"):
+        initial_table_target(cam, _obs(rig, _target_views(scan, dw_deg=20.0)))
+    few = _target_views(scan)
+    corners = few.corners_px.copy()
+    corners[4, 3:] = np.nan
+    few = type(few)(30.0, few.board_points_mm, few.table_steps, corners)
+    with pytest.raises(ValueError, match=r"table steps \[4\] have fewer than 6"):
+        initial_table_target(cam, _obs(rig, few))

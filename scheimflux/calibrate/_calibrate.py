@@ -24,6 +24,7 @@ from ._rejection import _left_out_indices, _outliers, _rejection_passes, _withou
 from ._result import Calibration
 from ._solve import least_squares
 from ._stage import _gauge_rms, calibrate_stage
+from ._stage_table import stage_extra_freeze, table_target_start
 
 
 def calibrate(
@@ -103,10 +104,11 @@ def calibrate(
     stage_freeze = _stage_freeze(freeze, obs)
     distortion = _default_distortion(model, distortion)
     camera_only = not _has_board_stripes(obs)
-    if camera_only and obs.stage is not None:
+    if camera_only and (obs.stage is not None or obs.stage_target is not None):
         raise ValueError(
-            "the observations hold a rotary-stage scan but no stripe pixels on any board "
-            "view: the stage needs the laser plane, which needs the laser line on the boards"
+            "the observations hold a rotary-stage scan or table target but no stripe pixels "
+            "on any board view: the stage needs the laser plane, which needs the laser line "
+            "on the boards"
         )
     cam_cal = calibrate_camera(
         obs,
@@ -143,13 +145,16 @@ def calibrate(
         )
         stage, ecc = st.stage, jnp.asarray(st.eccentricity_mm)
         fits["stage"] = st.fit
-    params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc)
+    table_pose = None
+    if obs.stage_target is not None:  # a target on the table (`_stage_table`)
+        stage, ecc, table_pose = table_target_start(cam_cal.camera, obs, stage, ecc)
+    params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc, table_pose)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, sigma_stripe_mm=sigma_mm, robust=robust)
     freeze = cam_cal.freeze
     start = params
     if joint:
         fn = joint_residuals if stage is not None else camera_plane_residuals
-        extra = ("stage.delta_omega",) if stage is not None else ()
+        extra = stage_extra_freeze(obs) if stage is not None else ()
         fit = least_squares(
             fn, params, data, freeze=freeze + extra, max_steps=max_steps, throw=throw
         )
@@ -188,7 +193,7 @@ def calibrate(
         freeze=freeze,
         reprojection_rms_px=_rms_px(params, data),
         plane_rms_mm=_plane_rms(params, data),
-        gauge_rms_mm=None if stage is None else _gauge_rms(params, data),
+        gauge_rms_mm=None if obs.stage is None else _gauge_rms(params, data),
         data=data,
         sensor_size=(int(obs.width), int(obs.height)),
         left_out=left_out,

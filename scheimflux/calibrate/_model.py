@@ -18,6 +18,7 @@ from ..camera._base import AbstractCamera
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
+from ._stage_table import TableTargetData, table_target_data
 
 
 class SystemParams(eqx.Module):
@@ -25,7 +26,8 @@ class SystemParams(eqx.Module):
 
     `plane`, `stage` and `eccentricity` are None when not (yet) calibrated.
     `eccentricity` is the gauge axis's offset from the table axis, in the measurement
-    frame (mm, shape (2,)).
+    frame (mm, shape (2,)). `table_pose` is the pose `T_t_b` of a target fixed to the
+    rotary table (None without one; `_stage_table`).
     """
 
     camera: AbstractCamera
@@ -33,6 +35,7 @@ class SystemParams(eqx.Module):
     plane: LaserPlane | None = None
     stage: RotaryStage | None = None
     eccentricity: Float[Array, "2"] | None = None
+    table_pose: Pose | None = None
 
 
 class CalibrationData(eqx.Module):
@@ -53,6 +56,7 @@ class CalibrationData(eqx.Module):
     sigma_corner_px: Float[Array, ""]
     sigma_stripe_mm: Float[Array, ""]
     robust: float | None = eqx.field(static=True, default=None)
+    table: TableTargetData | None = None  # a target fixed to the rotary table
 
 
 def padded_length(n: int, minimum: int = 8) -> int:
@@ -113,6 +117,7 @@ def make_data(
         sigma_corner_px=jnp.asarray(sigma_corner_px, dtype=jnp.float64),
         sigma_stripe_mm=jnp.asarray(sigma_stripe_mm, dtype=jnp.float64),
         robust=robust,
+        table=None if obs.stage_target is None else table_target_data(obs.stage_target, centre),
     )
 
 
@@ -222,10 +227,13 @@ def camera_plane_residuals(params, data):
 
 
 def joint_residuals(params, data):
-    return jnp.concatenate(
-        [
-            corner_residuals(params, data),
-            stripe_residuals(params, data),
-            gauge_residuals(params, data),
-        ]
-    )
+    blocks = [
+        corner_residuals(params, data),
+        stripe_residuals(params, data),
+        gauge_residuals(params, data),
+    ]
+    if params.table_pose is not None:  # a target on the table (`_stage_table`)
+        from ._stage_table import table_target_residuals
+
+        blocks.append(table_target_residuals(params, data))
+    return jnp.concatenate(blocks)

@@ -11,8 +11,8 @@ about z_m and slide along it); they are fixed as in the gauge calibration: the c
 origin lies on the measurement x_m axis, `t_m_c = (t_x, 0, 0)` ([`stage_from_axis`][]).
 
 This module holds the closed form ([`axis_from_poses`][]) and its checks of the stated
-table step and frame order. It is the start of a stage solved from such views; the
-least-squares block that ties these views into the joint calibration is not part of it.
+table step and frame order: the start of the least-squares block that ties these views
+into the joint calibration (`_stage_table`).
 """
 
 from __future__ import annotations

@@ -241,6 +241,9 @@ def calibration_axis_conditioning(cal) -> AxisConditioning | None:
     # not CalibrationData: a file read without its observations (no frame counts then)
     if isinstance(data, CalibrationData) and np.asarray(data.gauge_w).size:
         fi, gw = np.asarray(data.frame_index), np.asarray(data.gauge_w)
+        table = getattr(data, "table", None)
+        if not gw.any() and table is not None:  # no gauge scan: the table target's steps
+            fi, gw = np.asarray(table.steps), np.asarray(table.w)
     return axis_conditioning(
         fit.params, fit.free_mask, cov, reference_pixels(W, H), frame_index=fi, gauge_weights=gw
     )

@@ -98,9 +98,15 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
             lines.append(f"  {label:<8}[{', '.join(f'{x:+.8f}' for x in row)}]")
         t = ", ".join(f"{x:.5f}" for x in st["t_m_c_mm"])
         lines.append(f"  t_m_c = [{t}] mm, delta omega = {st['delta_omega_deg']:.6g} deg")
-        if st.get("gauge_eccentricity_mm") is not None:
+        if st.get("gauge_eccentricity_mm") is not None and d.get("gauge_rms_mm") is not None:
             ex, ey = st["gauge_eccentricity_mm"]
             lines.append(f"  gauge eccentricity = ({ex * 1e3:.2f}, {ey * 1e3:.2f}) um")
+        tt = d.get("table_target")
+        if isinstance(tt, dict):
+            lines.append(
+                f"  table target: {len(tt.get('steps', []))} table steps, reprojection RMS "
+                f"{_num(tt.get('rms_px'), 1.0, '.4f')} px"
+            )
     else:
         lines.append("stage: not calibrated (no rotary-stage scan in the observations)")
     lines.append(f"reprojection RMS: {_num(d.get('reprojection_rms_px'), 1.0, '.4f')} px")

@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 
 from ..io._observations import Nominal, Observations
 from ..targets._target import Target
+from ._stage_target import detect_stage_target
 from ._workflow import CaptureReport, detect_captures, extract_scan
 
 __all__ = ["detect_session"]
@@ -29,6 +30,8 @@ def detect_session(
     scan: str | os.PathLike | None = None,
     delta_omega_deg: float | None = None,
     gauge_radius_mm: float | None = None,
+    stage_target: str | os.PathLike | None = None,
+    stage_target_board: Target | None = None,
     stripe_width_px: float | None = None,
     margin_px: float | None = None,
     min_points: int = 6,
@@ -48,6 +51,9 @@ def detect_session(
     - `scan`: folder of rotary-stage scan frames; needs `delta_omega_deg` (stage step
       per frame) and `gauge_radius_mm` (nominal gauge radius). Its frames must have the
       board images' size.
+    - `stage_target`: folder of a target fixed to the rotary table, one image per
+      table step in natural name order ([`detect_stage_target`][]); needs
+      `delta_omega_deg`. `stage_target_board`: that target (default: `target`).
     - `on_note`: called with each one-line remark while running (dropped views, notes,
       ignored files, scan frames kept empty, no pixel pitch).
 
@@ -59,8 +65,14 @@ def detect_session(
     without images; `FileNotFoundError`/`NotADirectoryError` for missing folders.
     """
     say = on_note or (lambda m: None)
-    if scan is None and (delta_omega_deg is not None or gauge_radius_mm is not None):
-        raise ValueError("delta_omega_deg and gauge_radius_mm need a scan folder")
+    if scan is None and gauge_radius_mm is not None:
+        raise ValueError("gauge_radius_mm needs a scan folder")
+    if scan is None and stage_target is None and delta_omega_deg is not None:
+        raise ValueError("delta_omega_deg needs a scan or a stage-target folder")
+    if stage_target is not None and delta_omega_deg is None:
+        raise ValueError(
+            f"the stage target {os.fspath(stage_target)} needs delta_omega_deg (the table step)"
+        )
     if scan is not None and (delta_omega_deg is None or gauge_radius_mm is None):
         raise ValueError(f"the scan {os.fspath(scan)} needs delta_omega_deg and gauge_radius_mm")
     nominal = None
@@ -102,6 +114,22 @@ def detect_session(
             on_frame=frame_note,
         )
         obs = dataclasses.replace(obs, stage=stage)
+    if stage_target is not None:
+
+        def step_note(m: str) -> None:
+            report.notes.append(m)
+            say(m)
+
+        views = detect_stage_target(
+            stage_target,
+            target if stage_target_board is None else stage_target_board,
+            delta_omega_deg,
+            shape=(obs.height, obs.width),
+            min_points=min_points,
+            mirrored=mirrored,
+            on_step=step_note,
+        )
+        obs = dataclasses.replace(obs, stage_target=views)
     if obs.pixel_pitch_mm is None:
         m = "no pixel pitch given (--pixel-pitch-mm): none recorded; the thick-lens model needs it"
         report.notes.append(m)

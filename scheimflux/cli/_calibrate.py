@@ -24,11 +24,17 @@ the boards give a camera-only calibration (no laser plane: for export, not recon
 The thick-lens model needs the sensor's pixel pitch (--pixel-pitch-mm, or the
 observations file's). Nominal values given here (--pixel-pitch-mm, --focal-length-mm,
 --magnification, --tilt-deg) override the observations file's.
+
+A target on the rotary table in the observations (`detect --stage-target`) calibrates the
+table axis from its turning: its corners enter the joint solve as camera observations
+whose board poses are the stage's (docs/stage.md). --ignore-stage-target leaves it out
+(the stage then comes from the gauge scan alone, if there is one).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 from ._common import CLIError, require_positive
@@ -137,6 +143,11 @@ def register(subparsers) -> None:
         help="write CAL.json even if the calibration fails a quality gate (the file "
         'records the failed gates; "quality": {"passed": false})',
     )
+    p.add_argument(
+        "--ignore-stage-target",
+        action="store_true",
+        help="leave the observations' table target out (stage from the gauge scan alone)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing CAL.json")
     p.set_defaults(func=run)
 
@@ -239,6 +250,8 @@ def run(args) -> int:
 
     out = check_writable(args.out, overwrite=args.overwrite)  # before the long part
     obs = _with_nominal(args, read_observations(args.observations))
+    if args.ignore_stage_target:
+        obs = dataclasses.replace(obs, stage_target=None)
     distortion = args.distortion
     if distortion is None:
         rt = "radial-tangential"
@@ -254,6 +267,11 @@ def run(args) -> int:
     print(
         f"calibrating {args.observations}: {len(obs.views)} views"
         + (f", {len(obs.stage.frames)} stage frames" if obs.stage is not None else "")
+        + (
+            f", table target at {len(obs.stage_target.table_steps)} table steps"
+            if obs.stage_target is not None
+            else ""
+        )
         + f"; model {args.model}, distortion {distortion}",
         flush=True,
     )

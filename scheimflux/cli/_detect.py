@@ -26,6 +26,13 @@ line is extracted only inside the board region (the target's outline, grown by
 natural name order, is one frame (the table turned by --delta-omega-deg between frames);
 an unreadable frame is reported and kept as an empty frame so frame indices stay right.
 
+--stage-target DIR adds a target fixed to the rotary table (the table axis from its
+turning, docs/stage.md): every image in DIR, in natural name order, is one table step (the
+table turned by --delta-omega-deg between images). A step whose target is not found is
+dropped with the reason and the others keep their step numbers. The table target is the
+calibration target unless --stage-target-board/--stage-target-square-mm give another
+(same --target kind).
+
 Exits 0 when the target was found in at least one view.
 """
 
@@ -33,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import math
 import os
 
 from ._common import CLIError, check_output, refuse_to_clobber, require_positive, warn
@@ -108,7 +116,22 @@ def register(subparsers) -> None:
         "--tilt-deg", nargs=2, type=float, metavar=("PHI", "THETA"), help="nominal sensor tilt"
     )
     p.add_argument("--scan", metavar="SCAN_DIR", help="folder of rotary-stage scan frames")
-    p.add_argument("--delta-omega-deg", type=float, metavar="D", help="stage step per frame")
+    p.add_argument(
+        "--stage-target", metavar="DIR", help="folder of a target on the rotary table, one "
+        "image per table step (natural name order)",
+    )  # fmt: skip
+    p.add_argument(
+        "--stage-target-board", metavar="COLSxROWS", help="the table target's --board "
+        "(default: --board)",
+    )  # fmt: skip
+    p.add_argument(
+        "--stage-target-square-mm", type=float, metavar="S", help="the table target's "
+        "--square-mm (default: --square-mm)",
+    )  # fmt: skip
+    p.add_argument(
+        "--delta-omega-deg", type=float, metavar="D",
+        help="table step between scan frames / stage-target images",
+    )  # fmt: skip
     p.add_argument("--gauge-radius-mm", type=float, metavar="R", help="nominal gauge radius")
     p.add_argument(
         "--stripe-width-px",
@@ -147,8 +170,23 @@ def _check_args(args) -> None:
             raise CLIError("--scan needs --delta-omega-deg and --gauge-radius-mm")
         if not os.path.isdir(args.scan):
             raise CLIError(f"--scan {args.scan} is not a folder")
-    elif args.delta_omega_deg is not None or args.gauge_radius_mm is not None:
-        raise CLIError("--delta-omega-deg and --gauge-radius-mm need --scan SCAN_DIR")
+    elif args.gauge_radius_mm is not None:
+        raise CLIError("--gauge-radius-mm needs --scan SCAN_DIR")
+    if args.stage_target is not None:
+        if args.delta_omega_deg is None:
+            raise CLIError("--stage-target needs --delta-omega-deg (the table step per image)")
+        if not os.path.isdir(args.stage_target):
+            raise CLIError(f"--stage-target {args.stage_target} is not a folder")
+    elif args.stage_target_board is not None or args.stage_target_square_mm is not None:
+        raise CLIError("--stage-target-board and --stage-target-square-mm need --stage-target")
+    if args.delta_omega_deg is not None:
+        if args.scan is None and args.stage_target is None:
+            raise CLIError("--delta-omega-deg needs --scan SCAN_DIR or --stage-target DIR")
+        if not (math.isfinite(args.delta_omega_deg) and args.delta_omega_deg != 0.0):
+            raise CLIError(
+                f"--delta-omega-deg must be a non-zero angle, got {args.delta_omega_deg}"
+            )
+    require_positive(args, "stage_target_square_mm")
     if not os.path.isdir(args.images_dir):
         raise CLIError(f"{args.images_dir} is not a folder")
     refuse_to_clobber(args.out, overwrite=args.overwrite)
@@ -175,6 +213,16 @@ def run(args: argparse.Namespace) -> int:
         dictionary=args.dictionary,
         diameter_mm=args.circle_diameter_mm,
     )
+    table_target = None
+    if args.stage_target_board is not None or args.stage_target_square_mm is not None:
+        table_target = make_target(
+            args.target,
+            args.stage_target_board or args.board,
+            args.stage_target_square_mm or args.square_mm,
+            marker_mm=args.marker_mm,
+            dictionary=args.dictionary,
+            diameter_mm=args.circle_diameter_mm,
+        )
     obs, report = detect_session(
         args.images_dir,
         target,
@@ -185,6 +233,8 @@ def run(args: argparse.Namespace) -> int:
         scan=args.scan,
         delta_omega_deg=args.delta_omega_deg,
         gauge_radius_mm=args.gauge_radius_mm,
+        stage_target=args.stage_target,
+        stage_target_board=table_target,
         stripe_width_px=args.stripe_width_px,
         margin_px=args.board_margin_px,
         min_points=args.min_points,
@@ -200,12 +250,23 @@ def run(args: argparse.Namespace) -> int:
         f"{target}: found in {len(obs.views)} of {total} view(s) ({n_points} points), "
         f"{n_stripe} stripe points"
         + (f", {len(obs.stage.frames)} scan frame(s)" if obs.stage else "")
+        + (
+            f", table target at {len(obs.stage_target.table_steps)} of "
+            f"{len(obs.stage_target.table_steps) + len(obs.stage_target.dropped)} table step(s)"
+            if obs.stage_target
+            else ""
+        )
         + f" -> {args.out}"
     )
     if report.dropped:
         print(
             f"dropped {len(report.dropped)} view(s): "
             + "; ".join(f"view {d.view}: {d.reason}" for d in report.dropped)
+        )
+    if obs.stage_target is not None and obs.stage_target.dropped:
+        print(
+            f"dropped {len(obs.stage_target.dropped)} table step(s): "
+            + "; ".join(f"step {d.view}: {d.reason}" for d in obs.stage_target.dropped)
         )
     if report.previews:
         print(f"{len(report.previews)} preview(s) in {args.preview}")

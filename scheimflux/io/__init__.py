@@ -14,6 +14,7 @@ from ._observations import (
     Observations as Observations,
     ObservationsError as ObservationsError,
     StageScan as StageScan,
+    StageTargetViews as StageTargetViews,
     View as View,
     read_observations as read_observations,
     write_observations as write_observations,

@@ -15,6 +15,7 @@
  "stage": {"R_m_c": [[...], [...], [...]], "t_m_c_mm": [tx, ty, tz],     # optional
            "delta_omega_deg": 10.0, "gauge_eccentricity_mm": [ex, ey]},
  "board_poses": {"rotvec": [[rx, ry, rz], ...], "translation_mm": [[tx, ty, tz], ...]},
+ "table_target_pose": {"rotvec": [rx, ry, rz], "translation_mm": [tx, ty, tz]},  # optional
  "coverage": {"format": "scheimflux.coverage/1", "cell_px": 8, "margin_px": 23.6,  # optional
               "shape": [rows, cols], "fraction": 0.41, "bits": "<base64 packbits>"},
  "diagnostics": {"reprojection_rms_px": ..., "laser_plane_rms_mm": ..., "gauge_rms_mm": ...,
@@ -42,7 +43,9 @@ docs/coverage.md): an occupancy grid of `cell_px` cells, which must match `senso
 `laser_plane` is absent in a camera-only calibration (no stripe pixels on the boards):
 such a file serves OpenCV export, not reconstruction. `board_poses` (`T_c_b` of each
 view: rotation vector in rad, translation in mm) and the noise weights in `diagnostics`
-let [`read_calibration`][] rebuild the full calibration from the observations
+(and `table_target_pose`, the pose `T_t_b` of a target fixed to the rotary table, when
+the stage was calibrated from one) let [`read_calibration`][] rebuild the full
+calibration from the observations
 (`read_calibration(path, observations=obs)`: diagnostics, point uncertainty, refinement).
 
 Angles are written in degrees and read back in radians; the degree values are chosen
@@ -96,6 +99,7 @@ from ._calibration_schema import (
     _require,
     _sensor,
     _stage,
+    table_pose,
 )
 from ._files import load_json, write_json
 
@@ -266,6 +270,12 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
         doc["stage"] = stage_to_dict(params.stage, params.eccentricity)
     if params.board_poses is not None and np.shape(params.board_poses.rotvec)[0] > 0:
         doc["board_poses"] = poses_to_dict(params.board_poses)
+    if getattr(params, "table_pose", None) is not None:
+        tp = params.table_pose
+        doc["table_target_pose"] = {
+            "rotvec": _floats(np.asarray(tp.rotvec, dtype=np.float64)),
+            "translation_mm": _floats(np.asarray(tp.translation, dtype=np.float64)),
+        }
     coverage = getattr(cal, "coverage", None)
     if coverage is not None:
         doc["coverage"] = coverage.to_dict()
@@ -292,12 +302,26 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
             "converged": all(bool(fit.converged) for fit in fits.values()),
             "frozen": list(getattr(cal, "freeze", ()) or ()),
             **_weights(cal),
+            **_table_target(cal),
         }
     )
     diag.update(diagnostics or {})
     doc["diagnostics"] = _jsonable(diag)
     doc["software"] = {"name": "scheimflux", "version": _version()}
     return doc
+
+
+def _table_target(cal) -> dict:
+    """`{"table_target": {"steps", "rms_px"}}` of a stage calibrated with a target on the
+    table (its data at hand), else `{}`."""
+    table = getattr(getattr(cal, "data", None), "table", None)
+    if table is None or getattr(cal.params, "table_pose", None) is None:
+        return {}
+    from ..calibrate._stage_table import table_target_rms_px
+
+    steps = np.asarray(table.steps)[np.asarray(table.w).sum(axis=1) > 0]
+    rms = table_target_rms_px(cal.params, cal.data)
+    return {"table_target": {"steps": [int(i) for i in steps], "rms_px": rms}}
 
 
 def write_calibration(
@@ -339,6 +363,8 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
     if stage is not None and plane is None:
         raise CalibrationFileError("missing key laser_plane (the stage needs the laser plane)")
     poses = _poses(doc)
+    if doc.get("table_target_pose") is not None and stage is None:
+        raise CalibrationFileError("table_target_pose needs a stage")
     coverage = None
     if doc.get("coverage") is not None:
         from ..calibrate._coverage import Coverage
@@ -354,6 +380,7 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         plane,
         stage,
         None if ecc is None else jnp.asarray(ecc),
+        table_pose(doc),
     )
     cal = restore_calibration(
         params=params,

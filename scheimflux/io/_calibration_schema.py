@@ -110,6 +110,7 @@ _TOP_KEYS = (
     "laser_plane",
     "stage",
     "board_poses",
+    "table_target_pose",
     "coverage",
     "diagnostics",
     "software",
@@ -315,6 +316,20 @@ def _poses(doc: dict) -> Pose:
         raise CalibrationFileError(
             f"board_poses.rotvec has {len(rv)} rows but board_poses.translation_mm {len(t)}"
         )
+    return Pose(rv, t)
+
+
+def table_pose(doc: dict) -> Pose | None:
+    """The `table_target_pose` (a target fixed to the rotary table), None if absent."""
+    pd = doc.get("table_target_pose")
+    if pd is None:
+        return None
+    pd = _object(pd, "table_target_pose")
+    _check_keys(pd, _POSES_KEYS, "table_target_pose")
+    rv = _vector(_require(pd, "rotvec", "table_target_pose"), 3, "table_target_pose.rotvec")
+    t = _vector(
+        _require(pd, "translation_mm", "table_target_pose"), 3, "table_target_pose.translation_mm"
+    )
     return Pose(rv, t)
 
 

@@ -10,14 +10,25 @@
  "dropped_views": [{"view": 3, "images": ["view_3.jpg"],                           # optional
                     "reason": "no 11x8 checkerboard found ..."}, ...],
  "stage": {"delta_omega_deg": 10, "gauge_radius_mm": 17.5,                        # optional
-           "frames": [[[u, v], ...], ...]}}
+           "frames": [[[u, v], ...], ...]},
+ "stage_target": {"delta_omega_deg": 30,                                          # optional
+                  "board_points_mm": [[x, y, z], ...],
+                  "views": [{"table_step": 0, "corners_px": [[u, v] or null, ...],
+                             "stripe_px": [[u, v], ...],                        # optional
+                             "source": ["step_000.png"]}, ...],
+                  "dropped_views": [{"table_step": 4, "images": ["step_004.png"],
+                                     "reason": "..."}]}}
 ```
 `corners_px` follows the order of `board_points_mm`; null marks a corner not detected.
 `sensor.pixel_pitch_mm` is optional (null or absent when the datasheet value was not
 given to `detect`; the thick-lens model needs it). `source` names the image files a view
 was measured in; `dropped_views` lists the captures left out (target not found, image
-unreadable, ...) with the capture's view number, its image names and the reason. Files
-without these keys (older files) read as before.
+unreadable, ...) with the capture's view number, its image names and the reason.
+`stage_target` holds a target fixed to the rotary table, imaged at table steps
+`table_step` (angle `table_step · delta_omega_deg`; steps strictly increasing, a step
+whose image showed no target is listed in its `dropped_views` and keeps its number); its
+`board_points_mm` may be another target than the calibration boards'. Files without
+these keys (older files) read as before.
 """
 
 from __future__ import annotations
@@ -36,13 +47,17 @@ FORMAT = "scheimflux.observations/1"
 # The keys each level of the file may hold; anything else is refused (a misspelt optional
 # key would otherwise be ignored silently and change the result). "comment" is free text.
 TOP_KEYS = (
-    "format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage", "comment",
+    "format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage",
+    "stage_target", "comment",
 )  # fmt: skip
 SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
 NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
 VIEW_KEYS = ("corners_px", "stripe_px", "source")
 DROPPED_KEYS = ("view", "images", "reason")
 STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
+STAGE_TARGET_KEYS = ("delta_omega_deg", "board_points_mm", "views", "dropped_views")
+STAGE_TARGET_VIEW_KEYS = ("table_step", "corners_px", "stripe_px", "source")
+STAGE_TARGET_DROPPED_KEYS = ("table_step", "images", "reason")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +101,31 @@ class StageScan:
 
 
 @dataclasses.dataclass(frozen=True)
+class StageTargetViews:
+    """A target fixed to the rotary table, imaged at several table steps.
+
+    **Fields:**
+    - `delta_omega_deg`: the table step (non-zero); view k was taken at the angle
+      `table_steps[k] · delta_omega_deg`.
+    - `board_points_mm` `(M, 3)`: the target's points (its own board).
+    - `table_steps` `(F,)`: strictly increasing table steps of the views kept.
+    - `corners_px`: `(F, M, 2)` corner pixels, NaN where not detected.
+    - `sources`: per view the image names; `dropped`: the steps left out, as
+      [`DroppedView`][] with `view` = the table step.
+    - `stripe_px`: per view the laser line's pixels on the target (empty: none; the
+      laser plane's distance from the target then ties the plane to the table).
+    """
+
+    delta_omega_deg: float
+    board_points_mm: np.ndarray
+    table_steps: np.ndarray
+    corners_px: np.ndarray
+    sources: tuple[tuple[str, ...], ...] = ()
+    dropped: list[DroppedView] = dataclasses.field(default_factory=list)
+    stripe_px: tuple[np.ndarray, ...] = ()  # per view (K, 2): the laser line on the target
+
+
+@dataclasses.dataclass(frozen=True)
 class Observations:
     """Everything calibration needs, as read from or written to an observations file."""
 
@@ -97,6 +137,7 @@ class Observations:
     nominal: Nominal | None = None
     stage: StageScan | None = None
     dropped: list[DroppedView] = dataclasses.field(default_factory=list)
+    stage_target: StageTargetViews | None = None
 
     def corners(self) -> tuple[np.ndarray, np.ndarray]:
         """All views' corners stacked, `(V, M, 2)`, and the detection mask `(V, M)`."""
@@ -242,7 +283,82 @@ def parse_observations(doc) -> Observations:
         frames = [_points(f, f"stage.frames[{i}]", 2) for i, f in enumerate(frames_doc)]
         stage = StageScan(dw, r, frames)
 
-    return Observations(int(width), int(height), pitch, board, views, nominal, stage, dropped)
+    target = None
+    if doc.get("stage_target") is not None:
+        target = _parse_stage_target(doc["stage_target"])
+    if stage is not None and target is not None and stage.delta_omega_deg != target.delta_omega_deg:
+        raise ObservationsError(
+            f"stage.delta_omega_deg ({stage.delta_omega_deg:g}) and "
+            f"stage_target.delta_omega_deg ({target.delta_omega_deg:g}) differ: one table, "
+            "one step"
+        )
+    return Observations(
+        int(width), int(height), pitch, board, views, nominal, stage, dropped, target
+    )
+
+
+def _step(value, where: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise ObservationsError(f"{where} must be a table step >= 0, got {value!r}")
+    return int(value)
+
+
+def _parse_stage_target(sd) -> StageTargetViews:
+    if not isinstance(sd, dict):
+        raise ObservationsError("stage_target must be an object")
+    _check_keys(sd, STAGE_TARGET_KEYS, "stage_target")
+    dw = _number(_require(sd, "delta_omega_deg", "stage_target"), "stage_target.delta_omega_deg")
+    if dw == 0.0:
+        raise ObservationsError("stage_target.delta_omega_deg must be a non-zero angle")
+    board = _points(
+        _require(sd, "board_points_mm", "stage_target"), "stage_target.board_points_mm", 3
+    )
+    if len(board) < 4:
+        raise ObservationsError(
+            f"stage_target.board_points_mm has {len(board)} points; at least 4 needed"
+        )
+    views_doc = _require(sd, "views", "stage_target")
+    if not isinstance(views_doc, list) or not views_doc:
+        raise ObservationsError("stage_target.views must be a non-empty list")
+    steps, corners, sources, stripes = [], [], [], []
+    for i, vd in enumerate(views_doc):
+        where = f"stage_target.views[{i}]"
+        if not isinstance(vd, dict):
+            raise ObservationsError(f"{where} must be an object")
+        _check_keys(vd, STAGE_TARGET_VIEW_KEYS, where)
+        steps.append(_step(_require(vd, "table_step", where), f"{where}.table_step"))
+        c = _points(_require(vd, "corners_px", where), f"{where}.corners_px", 2, allow_null=True)
+        if len(c) != len(board):
+            raise ObservationsError(
+                f"{where}.corners_px has {len(c)} entries but stage_target.board_points_mm "
+                f"has {len(board)} (use null for corners that were not detected)"
+            )
+        corners.append(c)
+        stripes.append(_points(vd.get("stripe_px", []), f"{where}.stripe_px", 2))
+        sources.append(_names(vd.get("source", []), f"{where}.source"))
+    if any(b <= a for a, b in zip(steps, steps[1:])):
+        raise ObservationsError(
+            f"stage_target.views: table steps {steps} are not strictly increasing "
+            "(one view per step, in table order)"
+        )
+    dropped = []
+    dd_doc = sd.get("dropped_views", [])
+    if not isinstance(dd_doc, list):
+        raise ObservationsError("stage_target.dropped_views must be a list")
+    for i, dd in enumerate(dd_doc):
+        where = f"stage_target.dropped_views[{i}]"
+        _check_keys(dd, STAGE_TARGET_DROPPED_KEYS, where)
+        k = _step(_require(dd, "table_step", where), f"{where}.table_step")
+        if k in steps:
+            raise ObservationsError(f"{where}: table step {k} is also a kept view")
+        reason = _require(dd, "reason", where)
+        if not isinstance(reason, str):
+            raise ObservationsError(f"{where}.reason must be a string")
+        dropped.append(DroppedView(k, _names(dd.get("images", []), f"{where}.images"), reason))
+    return StageTargetViews(
+        dw, board, np.asarray(steps, dtype=np.int64), np.stack(corners), tuple(sources), dropped,
+        tuple(stripes) if any(len(x) for x in stripes) else (),
+    )  # fmt: skip
 
 
 def _names(value, where: str) -> tuple[str, ...]:
@@ -308,6 +424,34 @@ def observations_to_dict(obs: Observations) -> dict:
                 for f in obs.stage.frames
             ],
         }
+    if obs.stage_target is not None:
+        t = obs.stage_target
+        doc["stage_target"] = {
+            "delta_omega_deg": float(t.delta_omega_deg),
+            "board_points_mm": _rows(np.asarray(t.board_points_mm)),
+            "views": [
+                {
+                    "table_step": int(k),
+                    "corners_px": _rows(np.asarray(c)),
+                    **(
+                        {"stripe_px": [r for r in _rows(np.asarray(t.stripe_px[i])) if r]}
+                        if i < len(t.stripe_px) and len(t.stripe_px[i])
+                        else {}
+                    ),
+                    **(
+                        {"source": list(t.sources[i])}
+                        if i < len(t.sources) and t.sources[i]
+                        else {}
+                    ),
+                }
+                for i, (k, c) in enumerate(zip(t.table_steps, t.corners_px))
+            ],
+        }
+        if t.dropped:
+            doc["stage_target"]["dropped_views"] = [
+                {"table_step": int(d.view), "images": list(d.images), "reason": str(d.reason)}
+                for d in t.dropped
+            ]
     return doc
 
 

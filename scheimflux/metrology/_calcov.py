@@ -34,7 +34,7 @@ import numpy as np
 __all__ = ["GroupCovariance", "group_covariance", "sandwich_covariance"]
 
 # Residual blocks of the joint problems, in the order `joint_residuals` concatenates them.
-GROUPS = ("corners", "stripes", "gauge")
+GROUPS = ("corners", "stripes", "gauge", "table target", "table stripes")
 # A group with fewer redundant observations than this gets no variance factor of its own
 # (it keeps the pooled one).
 MIN_REDUNDANCY = 10.0
@@ -66,6 +66,11 @@ def _group_sizes(cal, params) -> list[int]:
              int(np.size(stripe_residuals(params, cal.data)))]
     if params.stage is not None:
         sizes.append(int(np.size(gauge_residuals(params, cal.data))))
+    if getattr(params, "table_pose", None) is not None:
+        from ..calibrate._stage_table import table_stripe_residuals, table_target_residuals
+
+        n_s = int(np.size(table_stripe_residuals(params, cal.data)))
+        sizes += [int(np.size(table_target_residuals(params, cal.data))) - n_s, n_s]
     return sizes
 
 
