@@ -245,6 +245,21 @@ def camera_residuals(params, data):
     return corner_residuals(params, data)
 
 
+def laser_residuals(params: SystemParams, data: CalibrationData):
+    """`(stripe_residuals, gauge_residuals)` through one back-projection of the stripe and
+    gauge pixels ([`laser_points`][], as in [`joint_residuals`][]); the gauge's is None
+    without a stage. The residual summaries (rejection pass, plane and gauge RMS) are
+    this one compiled program."""
+    if params.stage is None:
+        return stripe_residuals(params, data), None
+    X_s, X_g = laser_points(params.camera, params.plane, data.stripe, data.gauge)
+    stripe = stripe_point_residuals(params.board_poses, X_s, data.stripe_w, data)
+    gauge = gauge_point_residuals(
+        params.stage, params.eccentricity, params.plane.n, X_g, data.gauge_w, data
+    )
+    return stripe, gauge
+
+
 def camera_plane_residuals(params, data):
     return jnp.concatenate([corner_residuals(params, data), stripe_residuals(params, data)])
 
