@@ -19,6 +19,7 @@ from ..geometry._transforms import Pose
 from ..io._observations import Observations
 from ._gauge import ideal_freeze
 from ._init import (
+    _directions,
     closed_form_pinhole,
     nominal_thick_lens,
     poses_for_central_camera,
@@ -277,11 +278,6 @@ def _rms_px(params, data: CalibrationData) -> float:
     r = _corner_errors(params, data)
     n = float(np.sum(np.asarray(data.corner_w)))
     return float(np.sqrt(np.sum(r**2) / (2 * n)))
-
-
-@eqx.filter_jit(compiler_options=ONE_SHOT)
-def _directions(camera, uv):
-    return camera.backproject(uv).direction
 
 
 def pixel_footprint_mm(camera, poses: Pose, obs: Observations) -> float:

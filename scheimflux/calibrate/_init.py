@@ -17,7 +17,7 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose, rotation_matrix
 from ..io._observations import Nominal
-from ._solve import least_squares
+from ._solve import ONE_SHOT, least_squares
 from ._zhang import board_homographies, pose_from_homography, zhang_intrinsics
 
 
@@ -98,6 +98,13 @@ def _stack_poses(Rs, ts) -> Pose:
     )
 
 
+@eqx.filter_jit(compiler_options=ONE_SHOT)
+def _directions(camera, uv):
+    """The unit ray directions of pixels `uv` `(N, 2)`, compiled (eagerly, every
+    operation of the back-projection would be a program of its own, per shape)."""
+    return camera.backproject(uv).direction
+
+
 def poses_for_central_camera(camera, obs) -> Pose:
     """Board poses by homography for any central camera (rays from the origin).
 
@@ -106,11 +113,16 @@ def poses_for_central_camera(camera, obs) -> Pose:
     """
     corners, mask = obs.corners()
     board_xy = obs.board_points_mm[:, :2]
+    # every view's corners in one compiled call (undetected ones at the image centre,
+    # not used)
+    centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
+    uv_all = np.where(mask[..., None], corners, centre).reshape(-1, 2)
+    d_all = np.asarray(_directions(camera, jax.device_put(uv_all))).reshape(*mask.shape, 3)
     Rs, ts = [], []
-    for i, (uv, m) in enumerate(zip(corners, mask)):
+    for i, (d, m) in enumerate(zip(d_all, mask)):
         if m.sum() < 4:
             raise ValueError(f"view {i} has {int(m.sum())} detected corners; at least 4 needed")
-        d = np.asarray(camera.backproject(jnp.asarray(uv[m])).direction)
+        d = d[m]
         if np.any(d[:, 2] <= 0):
             raise ValueError(f"view {i}: corners map behind the initial camera")
         xy = d[:, :2] / d[:, 2:]

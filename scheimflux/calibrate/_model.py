@@ -104,18 +104,24 @@ def make_data(
         radius = obs.stage.gauge_radius_mm
     else:
         gauge, gauge_w, radius = np.broadcast_to(centre, (1, 1, 2)).copy(), np.zeros((1, 1)), 1.0
+
+    # `jax.device_put` of NumPy arrays: no device program (`jnp.asarray` of a NumPy
+    # array compiles one per shape)
+    def put(a):
+        return jax.device_put(np.asarray(a, dtype=np.float64))
+
     return CalibrationData(
-        board=jnp.asarray(obs.board_points_mm),
-        corners=jnp.asarray(corners),
-        corner_w=jnp.asarray(mask.astype(np.float64)),
-        stripe=jnp.asarray(stripe),
-        stripe_w=jnp.asarray(stripe_w),
-        gauge=jnp.asarray(gauge),
-        gauge_w=jnp.asarray(gauge_w),
-        frame_index=jnp.arange(gauge.shape[0], dtype=jnp.float64),
-        gauge_radius=jnp.asarray(radius, dtype=jnp.float64),
-        sigma_corner_px=jnp.asarray(sigma_corner_px, dtype=jnp.float64),
-        sigma_stripe_mm=jnp.asarray(sigma_stripe_mm, dtype=jnp.float64),
+        board=put(obs.board_points_mm),
+        corners=put(corners),
+        corner_w=put(mask),
+        stripe=put(stripe),
+        stripe_w=put(stripe_w),
+        gauge=put(gauge),
+        gauge_w=put(gauge_w),
+        frame_index=put(np.arange(gauge.shape[0])),
+        gauge_radius=put(radius),
+        sigma_corner_px=put(sigma_corner_px),
+        sigma_stripe_mm=put(sigma_stripe_mm),
         robust=robust,
         table=None if obs.stage_target is None else table_target_data(obs.stage_target, centre),
     )
@@ -158,17 +164,39 @@ def _laser_points_safe(camera, plane, uv):
     return jax.vmap(one)(uv)
 
 
-def stripe_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
-    """Distance (mm / σ) of each board stripe point's laser-plane point from its board."""
+def laser_points(camera, plane, *pixel_sets):
+    """The laser-plane points `(..., 3)` of several pixel arrays `(..., 2)`, back-projected
+    through ONE `vmap` of the camera: a residual function with several blocks of laser
+    pixels (board stripes, gauge scan) holds one copy of the camera's back-projection
+    (with its undistortion) in its compiled program, not one per block. Each point's
+    arithmetic is that of `_laser_points_safe` on its own block."""
+    flat = jnp.concatenate([jnp.reshape(p, (-1, 2)) for p in pixel_sets])
+    X = _laser_points_safe(camera, plane, flat)
+    out, i = [], 0
+    for p in pixel_sets:
+        n = int(np.prod(p.shape[:-1], dtype=int))
+        out.append(X[i : i + n].reshape(*p.shape[:-1], 3))
+        i += n
+    return out
 
-    def one_view(pose, uv, w):
-        X = _laser_points_safe(params.camera, params.plane, uv)
+
+def stripe_point_residuals(poses, X, w, data: CalibrationData) -> Float[Array, " n"]:
+    """[`stripe_residuals`][] from the stripe pixels' laser-plane points `X` `(V, K, 3)`
+    (camera frame), with weights `w` `(V, K)`."""
+
+    def one_view(pose, X, w):
         n_b = pose.R[:, 2]  # board normal in the camera frame
         d = X @ n_b - jnp.dot(n_b, pose.translation)
         return d * w
 
-    r = jax.vmap(one_view)(params.board_poses, data.stripe, data.stripe_w)
+    r = jax.vmap(one_view)(poses, X, w)
     return _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
+
+
+def stripe_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
+    """Distance (mm / σ) of each board stripe point's laser-plane point from its board."""
+    (X,) = laser_points(params.camera, params.plane, data.stripe)
+    return stripe_point_residuals(params.board_poses, X, data.stripe_w, data)
 
 
 def gauge_residuals(params: SystemParams, data: CalibrationData) -> Float[Array, " n"]:
@@ -182,7 +210,7 @@ def gauge_residuals(params: SystemParams, data: CalibrationData) -> Float[Array,
     instead, a cylinder nearly tangent to the laser plane fits any stripe in the plane
     to a fraction of a µm: a false minimum.)
     """
-    X_c = jax.vmap(lambda uv: _laser_points_safe(params.camera, params.plane, uv))(data.gauge)
+    (X_c,) = laser_points(params.camera, params.plane, data.gauge)
     return gauge_point_residuals(
         params.stage, params.eccentricity, params.plane.n, X_c, data.gauge_w, data
     )
@@ -222,15 +250,37 @@ def camera_residuals(params, data):
     return corner_residuals(params, data)
 
 
+def laser_residuals(params: SystemParams, data: CalibrationData):
+    """`(stripe_residuals, gauge_residuals)` through one back-projection of the stripe and
+    gauge pixels ([`laser_points`][], as in [`joint_residuals`][]); the gauge's is None
+    without a stage. The residual summaries (rejection pass, plane and gauge RMS) are
+    this one compiled program."""
+    if params.stage is None:
+        return stripe_residuals(params, data), None
+    X_s, X_g = laser_points(params.camera, params.plane, data.stripe, data.gauge)
+    stripe = stripe_point_residuals(params.board_poses, X_s, data.stripe_w, data)
+    gauge = gauge_point_residuals(
+        params.stage, params.eccentricity, params.plane.n, X_g, data.gauge_w, data
+    )
+    return stripe, gauge
+
+
 def camera_plane_residuals(params, data):
     return jnp.concatenate([corner_residuals(params, data), stripe_residuals(params, data)])
 
 
 def joint_residuals(params, data):
+    """Corner, board-stripe and gauge residuals, in that order, then the table target's
+    when the observations hold one (`_stage_table`). The stripe and gauge pixels are
+    back-projected together ([`laser_points`][]): the largest compiled program of a
+    calibration holds the camera's back-projection once."""
+    X_s, X_g = laser_points(params.camera, params.plane, data.stripe, data.gauge)
     blocks = [
         corner_residuals(params, data),
-        stripe_residuals(params, data),
-        gauge_residuals(params, data),
+        stripe_point_residuals(params.board_poses, X_s, data.stripe_w, data),
+        gauge_point_residuals(
+            params.stage, params.eccentricity, params.plane.n, X_g, data.gauge_w, data
+        ),
     ]
     if params.table_pose is not None:  # a target on the table (`_stage_table`)
         from ._stage_table import table_target_residuals

@@ -15,11 +15,12 @@ from ..geometry._plane import LaserPlane
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
 from ._gates import plane_conditioning
-from ._model import stripe_residuals
+from ._model import laser_residuals
 from ._solve import ONE_SHOT
 
-# Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`).
-_stripe_residuals_jit = eqx.filter_jit(stripe_residuals, compiler_options=ONE_SHOT)
+# Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`):
+# the stripe and gauge residuals in one program (one back-projection of their pixels).
+_laser_residuals_jit = eqx.filter_jit(laser_residuals, compiler_options=ONE_SHOT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +129,7 @@ def fit_laser_plane(
 
 
 def _plane_rms(params, data) -> float:
-    r = np.asarray(_stripe_residuals_jit(params, data)) * float(data.sigma_stripe_mm)
+    r = np.asarray(_laser_residuals_jit(params, data)[0]) * float(data.sigma_stripe_mm)
     n = float(np.sum(np.asarray(data.stripe_w)))
     return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))
 

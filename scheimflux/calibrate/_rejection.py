@@ -10,9 +10,8 @@ import numpy as np
 from ._camera import _corner_errors
 from ._gates import outlier_masks
 from ._model import CalibrationData
-from ._plane import _stripe_residuals_jit
+from ._plane import _laser_residuals_jit
 from ._solve import least_squares
-from ._stage import _gauge_residuals_jit
 
 LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge")
 
@@ -97,16 +96,12 @@ def _block_residuals(params, data):
     """Corner errors `(V, M, 2)` px and the plain stripe `(V, K)` and gauge `(F, L)`
     residuals (units of their σ; zeros where the block is absent)."""
     err = _corner_errors(params, data)
-    if params.plane is None:
-        stripe = np.zeros(data.stripe_w.shape)
-    else:
-        stripe = np.asarray(_stripe_residuals_jit(params, data)).reshape(data.stripe_w.shape)
-        stripe = _unrobust(stripe, data.robust)
-    if params.stage is None:
-        gauge = np.zeros(data.gauge_w.shape)
-    else:
-        gauge = np.asarray(_gauge_residuals_jit(params, data))[:-2].reshape(data.gauge_w.shape)
-        gauge = _unrobust(gauge, data.robust)
+    stripe, gauge = np.zeros(data.stripe_w.shape), np.zeros(data.gauge_w.shape)
+    if params.plane is not None:
+        r_s, r_g = _laser_residuals_jit(params, data)
+        stripe = _unrobust(np.asarray(r_s).reshape(data.stripe_w.shape), data.robust)
+        if r_g is not None:
+            gauge = _unrobust(np.asarray(r_g)[:-2].reshape(data.gauge_w.shape), data.robust)
     return err, stripe, gauge
 
 

@@ -21,10 +21,9 @@ from ._model import (
     SystemParams,
     _laser_points_safe,
     gauge_point_residuals,
-    gauge_residuals,
     make_data,
 )
-from ._plane import _pad_pow2
+from ._plane import _laser_residuals_jit, _pad_pow2
 from ._solve import ONE_SHOT, Fit, NotConvergedError, free_spec, least_squares
 from ._stage_axis import (
     _fit_cylinder_axis,
@@ -32,9 +31,6 @@ from ._stage_axis import (
     _stage_from_sections,
     _straight_line_ms,
 )
-
-# Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`).
-_gauge_residuals_jit = eqx.filter_jit(gauge_residuals, compiler_options=ONE_SHOT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,6 +251,6 @@ def _plane_points(camera, plane: LaserPlane, uv) -> jnp.ndarray:
 
 
 def _gauge_rms(params, data) -> float:
-    r = np.asarray(_gauge_residuals_jit(params, data)) * float(data.sigma_stripe_mm)
+    r = np.asarray(_laser_residuals_jit(params, data)[1]) * float(data.sigma_stripe_mm)
     n = float(np.sum(np.asarray(data.gauge_w)))
     return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))

@@ -169,9 +169,11 @@ class ThickLensScheimpflug(AbstractCamera):
         # Jacobians of calibration.
         dist = jax.lax.stop_gradient(self.distortion)
         target = jax.lax.stop_gradient(xi_d)
-        xi = target
-        for _ in range(_FIXED_POINT_STEPS):
-            xi = target - (dist.distort(xi) - xi)
+        # a `lax` loop, not an unrolled Python one: one copy of the distortion in every
+        # compiled program that back-projects (the same arithmetic, step for step)
+        xi = jax.lax.fori_loop(
+            0, _FIXED_POINT_STEPS, lambda _, x: target - (dist.distort(x) - x), target
+        )
         xi_c = xi - _solve2(jax.jacfwd(dist.distort)(xi), dist.distort(xi) - target)
         err = jnp.max(jnp.abs(dist.distort(xi_c) - target))
         tol = 1e-13 if xi_d.dtype == jnp.float64 else 1e-6
