@@ -127,10 +127,17 @@ def test_saturated_core_keeps_its_centre(peak):
         assert s.coverage >= 0.6 and s.rms <= 0.1, s
 
 
-def test_jpeg_round_trip():
-    on, off, truth = capture(line_angle_deg=15.0, line_offset_px=9.0, jpeg_quality=85)
+@pytest.mark.parametrize("quality", [95, 85])
+def test_jpeg_round_trip(quality):
+    """JPEG removes the noise at the pixel scale (the pixel estimate reads 0.3-0.6 grey
+    levels where the renderer put ~1.2) and keeps it, with its block artefacts, at
+    coarser ones: the step fit's residual test takes the noise at 2 x 2 block scale.
+    Measured: 92 % (q95) and 90 % (q85) of the line, 0.046-0.056 px RMS, no false centre
+    (the pixel-scale noise gave 77 % and 61 %)."""
+    on, off, truth = capture(line_angle_deg=15.0, line_offset_px=9.0, jpeg_quality=quality)
     s = score(extract_stripe(on), truth)
-    assert s.false_rate <= 0.005 and s.coverage >= 0.5 and s.rms <= 0.1
+    assert s.false_rate <= 0.005 and s.max_error < 1.0, s
+    assert s.coverage >= 0.85 and s.rms <= 0.08 and abs(s.bias) <= 0.02, s
 
 
 def test_mask_ignores_the_laser_elsewhere():

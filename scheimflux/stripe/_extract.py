@@ -13,9 +13,9 @@ import numpy as np
 
 from ._centroid import centroid_band
 from ._channel import pick_channel
+from ._clipped import RIM_FLOOR, plain_surroundings, profile_std, rims_even
 from ._coarse import FACTOR, coarse_track, downsample
-from ._image import CHANNELS, as_image, channel_image, estimate_noise
-from ._kernels import FWHM_PER_SIGMA, steger_sigma
+from ._image import CHANNELS, as_image, block_noise, channel_image, estimate_noise
 from ._link import consistent, link_segments
 from ._mask import as_mask
 from ._result import StripeResult
@@ -37,93 +37,8 @@ WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
 # three minimum segments): glints and short reflections alone are not a line.
 MIN_LINE_FRACTION = 0.05
-# Largest |log| of the ratio of the albedo levels at a clipped plateau's two rims (see
-# `_rims_even`): 0.15 (16 % more light on one side) moves the plateau's centre by
-# ~0.05 px on a 5 px line clipped 100-fold (rim shift s² / y_rim per unit log albedo).
-RIM_RATIO_MAX = 0.15
-# ... levels below this fraction of the clipping level (or 3 noise stds) count as it: a
-# surface that dark shows its albedo too faintly (and the line's far tail, ~1 % of the
-# clipped level 2 FWHM out, would count as one).
-RIM_FLOOR = 0.05
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
-
-
-def _profile_std(width: float) -> float:
-    """Std (px) of a line of FWHM `width` smoothed by Steger's Gaussian for it."""
-    return math.hypot(width / FWHM_PER_SIGMA, steger_sigma(width))
-
-
-def _rims_even(gather, flat, y, plateau, ny, gap, floor, n_rows):
-    """Scan lines whose clipped plateau has the same albedo at both rims.
-
-    A clipped line's plateau ends where albedo x (ambient + laser) reaches the sensor's
-    full scale: over a darker albedo that happens nearer the centre. Where the line runs
-    along an albedo edge (a checker or marker border between its rims), the plateau is
-    then shifted off the line's centre by up to ~2 px while it stays perfectly
-    symmetric in shape, so no profile test sees it. The albedo on either side is read
-    `gap` px (along the line's normal) beyond each rim, as the mean of 5 samples a pixel
-    apart, linearly interpolated at positions symmetric about the centre: a plateau is
-    kept when the two differ by at most `RIM_RATIO_MAX` (levels under `floor` count as
-    `floor`). The caller passes the laser-off image at the rims themselves, or the
-    laser-on image beyond the line's reach (where its level does not move with the
-    centre's own error)."""
-    cols = np.arange(y.size)
-    yc = np.nan_to_num(y, nan=0.0)
-    out = 0.5 * plateau + gap / np.maximum(np.abs(np.nan_to_num(ny, nan=1.0)), 0.5)
-    off = out[None, :] + np.arange(5)[:, None]  # 5 samples a pixel apart on each side
-
-    def level(pos):  # mean of the linearly interpolated samples (exactly symmetric)
-        lo = np.floor(pos)
-        f = pos - lo
-        lo = np.clip(lo.astype(np.intp), 0, n_rows - 2)
-        return ((1 - f) * gather(lo, cols, flat) + f * gather(lo + 1, cols, flat)).mean(0)
-
-    left, right = level(yc[None, :] - off), level(yc[None, :] + off)
-    inside = (yc - off[-1] >= 0) & (yc + off[-1] <= n_rows - 1)
-    ratio = np.abs(np.log(np.maximum(left, floor) / np.maximum(right, floor)))
-    return inside & np.isfinite(y) & (ratio <= RIM_RATIO_MAX), left, right
-
-
-def _plain_surroundings(left, right, ok, reach, floor):
-    """Scan lines whose albedo levels beside the line (`left`, `right`, valid at `ok`)
-    stay within `RIM_RATIO_MAX` (in log) over the `reach` scan lines on either side:
-    no albedo edge near the line at all (levels under `floor` count as `floor`)."""
-    n = left.size
-    if n < 2 * reach + 1:
-        return np.zeros(n, bool)
-    out = np.ones(n, bool)
-    for lev in (left, right):
-        v = np.where(ok, np.log(np.maximum(lev, floor)), np.nan)
-        win = np.lib.stride_tricks.sliding_window_view(
-            np.pad(v, reach, constant_values=np.nan), 2 * reach + 1
-        )
-        count = np.count_nonzero(np.isfinite(win), axis=1)
-        hi = np.max(np.where(np.isfinite(win), win, -np.inf), axis=1)
-        lo = np.min(np.where(np.isfinite(win), win, np.inf), axis=1)
-        out &= (count >= reach) & (hi - lo <= RIM_RATIO_MAX)
-    return out & ok
-
-
-def _block_noise(img: np.ndarray, n_rows: int = 16) -> float:
-    """Pixel-noise std (grey levels) measured on 2 x 2 block means (twice their robust
-    std, as `estimate_noise`): the same as the pixel estimate for white noise, but not
-    fooled by JPEG, which removes the noise at the pixel scale (its second differences)
-    and leaves it, and its block artefacts, at coarser ones: at quality 85 the pixel
-    estimate reads 0.3 grey levels where the renderer put 1.2 (this one reads 0.9)."""
-    h, w = img.shape[:2]
-    if h < 4 or w < 6:
-        return 0.0
-    step = max((h - 1) // n_rows, 2)
-    top = np.arange(0, h - 1, step)[:n_rows]
-    pair = img[top].astype(np.float32) + img[top + 1].astype(np.float32)
-    w2 = (w // 2) * 2
-    block = 0.25 * (pair[:, 0:w2:2] + pair[:, 1:w2:2])
-    d = np.abs(block[:, :-2] - 2.0 * block[:, 1:-1] + block[:, 2:]).reshape(-1)
-    # the RMS of the 90 % smallest (edges and the line are few), scaled to a Gaussian's
-    # std (1 / sqrt(0.623)): unlike the median, not stuck to the grey-level steps
-    d = np.sort(d)[: max(int(0.9 * d.size), 1)]
-    return 2.0 * 1.267 * float(np.sqrt(np.mean(d * d))) / math.sqrt(6.0)
 
 
 def _empty(n: int, orientation: str, method: str, **extra) -> StripeResult:
@@ -412,7 +327,7 @@ def _extract_one(
     # not: the first pass, at the unclipped line's width, refuses most of a wide flat
     # top (its second derivative vanishes on the plateau and the line points it finds
     # sit on the plateau's rims); the plateau's own pass decides, and the laser-off
-    # image shows the albedo at the plateau's rims (`_rims_even`). Without one, only
+    # image shows the albedo at the plateau's rims (`rims_even`). Without one, only
     # the ones the first pass accepted: the laser-on image cannot show an albedo edge
     # right under a rim (a line along a narrow white strip between black ones, as on a
     # ChArUco board: a symmetric plateau 1 px off the line).
@@ -447,7 +362,7 @@ def _extract_one(
             # The strict tests: the asymmetry bound held at the shift in pixels it allows
             # a line of the default width (~0.25 px: the asymmetry of a given shift falls
             # as the profile widens), and the same albedo at both rims.
-            asym_max = ASYMMETRY_MAX * min(_profile_std(_DEFAULT_WIDTH) / _profile_std(wide), 1.0)
+            asym_max = ASYMMETRY_MAX * min(profile_std(_DEFAULT_WIDTH) / profile_std(wide), 1.0)
             even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
             if off_level is None:
                 # Without a laser-off image: the laser-on image 2 FWHM beyond the rims,
@@ -458,17 +373,17 @@ def _extract_one(
                 # plateau pass's own tests: the line is kept in images of a board where
                 # albedo edges lie near it everywhere (a grey or colour single image of
                 # board and line, where the capture needs it to drop the corners near it).
-                rims, left, right = _rims_even(
+                rims, left, right = rims_even(
                     gather, flat_sat, lines.y, plateau, lines.ny, 2.0 * width,
                     max(3.0 * noise, RIM_FLOOR * sat_level), shape[0],
                 )  # fmt: skip
                 reach = int(math.ceil(np.median(plateau[saturated]) + 4.0 * width))
-                even &= rims & _plain_surroundings(
+                even &= rims & plain_surroundings(
                     left, right, saturated & np.isfinite(lines.y), reach, 3.0 * noise
                 )
                 even |= first_pass
             else:  # the laser-off image at the rims themselves (2 px in to 2 px out)
-                even &= _rims_even(
+                even &= rims_even(
                     gather, off_level.reshape(-1), lines.y, plateau, lines.ny, -2.0,
                     3.0 * estimate_noise(off_level), shape[0],
                 )[0]  # fmt: skip
@@ -487,10 +402,10 @@ def _extract_one(
     y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
     if method == "steger" and widths.size >= 8:
         # the step fit's residual test needs the noise that is in the profiles: JPEG
-        # keeps it at block scale (`_block_noise`), where it reads well above the pixel
+        # keeps it at block scale (`block_noise`), where it reads well above the pixel
         # estimate (2-3x at quality 95-85; 1.1-1.2x without compression, where the
         # pixel estimate stays)
-        block = _block_noise(img)
+        block = block_noise(img)
         fit_noise = block if block > 1.5 * noise else noise
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise

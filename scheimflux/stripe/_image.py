@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -76,6 +77,27 @@ def estimate_noise(img: np.ndarray, *, n_rows: int = 8) -> float:
     if np.issubdtype(img.dtype, np.integer):
         return max(sigma, 0.3)
     return max(sigma, 1e-9 * max(float(np.abs(img).max()), 1e-30))
+
+
+def block_noise(img: np.ndarray, n_rows: int = 16) -> float:
+    """Pixel-noise std (grey levels) measured on 2 x 2 block means (twice their robust
+    std, as `estimate_noise`): the same as the pixel estimate for white noise, but not
+    fooled by JPEG, which removes the noise at the pixel scale (its second differences)
+    and leaves it, and its block artefacts, at coarser ones: at quality 85 the pixel
+    estimate reads 0.3 grey levels where the renderer put 1.2 (this one reads 0.9)."""
+    h, w = img.shape[:2]
+    if h < 4 or w < 6:
+        return 0.0
+    step = max((h - 1) // n_rows, 2)
+    top = np.arange(0, h - 1, step)[:n_rows]
+    pair = img[top].astype(np.float32) + img[top + 1].astype(np.float32)
+    w2 = (w // 2) * 2
+    block = 0.25 * (pair[:, 0:w2:2] + pair[:, 1:w2:2])
+    d = np.abs(block[:, :-2] - 2.0 * block[:, 1:-1] + block[:, 2:]).reshape(-1)
+    # the RMS of the 90 % smallest (edges and the line are few), scaled to a Gaussian's
+    # std (1 / sqrt(0.623)): unlike the median, not stuck to the grey-level steps
+    d = np.sort(d)[: max(int(0.9 * d.size), 1)]
+    return 2.0 * 1.267 * float(np.sqrt(np.mean(d * d))) / math.sqrt(6.0)
 
 
 CHANNELS = (
