@@ -141,14 +141,24 @@ def test_table_target_recovers_the_axis(calibrated, capsys):
     assert rms < 1e-3
     tt = cal.diagnostics["table_target"]
     assert tt["steps"] == list(range(12))
-    assert tt["rms_px"] < 0.035  # 0.03 px of noise: the camera fits the deep points too
+    # the boards fit at their noise (0.03 px); the table target's misfit is the wobble a
+    # rigid axis cannot follow: 0.02 mrad over ≈ 20 mm is ≈ 0.4 µm ≈ 0.13 px (measured
+    # 0.141 and 0.152 px on two seeds; 0.030 px without wobble)
+    assert cal.reprojection_rms_px < 0.035
+    assert tt["rms_px"] < 0.2
 
 
 def test_calibration_file_keeps_the_table_target(calibrated):
     rig, stage, cal, path = calibrated
     # read back with its observations: the joint fit is rebuilt with the table block
+    from scheimflux.calibrate._solve import parameter_labels
+
     fit = cal.fits["joint"]
-    assert "table_pose.rotvec[0]" in fit.labels and "eccentricity[0]" not in fit.labels
+    labels = parameter_labels(fit.params, fit.free_mask)
+    assert "table_pose.rotvec[0]" in labels and "eccentricity[0]" not in labels
+    # the rebuilt residuals (table block included) give the cost the solve wrote
+    cost = 0.5 * float(np.sum(np.asarray(fit.residuals) ** 2))
+    assert cost == pytest.approx(cal.diagnostics["solves"]["joint"]["cost"], rel=1e-6)
     assert cal.diagnostics["stage_axis"]["n_frames"] == 12
     assert cal.diagnostics["stage_axis"]["arc_deg"] == pytest.approx(330.0)
 

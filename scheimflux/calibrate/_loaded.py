@@ -204,7 +204,7 @@ def restore_calibration(
             fn, p, spec = gauge_residuals, params, free_spec(params, _STAGE_FREEZE)
         elif name == "joint" and params.plane is not None:
             extra = ("stage.delta_omega",) if params.stage is not None else ()
-            if params.table_pose is not None and not _has_gauge(data):
+            if params.table_pose is not None and diag.get("gauge_rms_mm") is None:
                 extra += ("eccentricity",)  # a table target alone: no gauge scan
             fn = joint_residuals if params.stage is not None else camera_plane_residuals
             p, spec = params, free_spec(params, frozen + extra)
@@ -228,11 +228,6 @@ def restore_calibration(
         diagnostics=diag,
         raw=raw,
     )
-
-
-def _has_gauge(data) -> bool:
-    w = getattr(data, "gauge_w", None)
-    return w is not None and bool(np.any(np.asarray(w) > 0))
 
 
 def empty_poses() -> Pose:

@@ -33,6 +33,7 @@ from jaxtyping import Array, Float
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
 from ..io._observations import Observations, StageTargetViews, View
+from ._solve import ONE_SHOT
 from ._stage_target import axis_from_poses, stage_from_axis
 
 __all__ = [
@@ -64,11 +65,11 @@ class TableTargetData(eqx.Module):
 
 def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
     """[`TableTargetData`][] of an observations file's `stage_target`."""
+    from ._model import _pad
+
     uv = np.asarray(target.corners_px, dtype=np.float64)
     ok = np.all(np.isfinite(uv), axis=-1)
     uv = np.where(ok[..., None], uv, np.asarray(centre, dtype=np.float64))
-    from ._model import _pad
-
     sets = list(target.stripe_px) or [np.zeros((0, 2))] * len(uv)
     stripe, stripe_w = _pad(sets, np.asarray(centre, dtype=np.float64))
     return TableTargetData(
@@ -130,7 +131,8 @@ def table_stripe_residuals(params, data) -> Float[Array, " n"]:
     return _robustify(r, data.robust)
 
 
-_errors_jit = eqx.filter_jit(table_target_errors_px)
+# run once per calibration (summaries): compiled as the other one-shot programs
+_errors_jit = eqx.filter_jit(table_target_errors_px, compiler_options=ONE_SHOT)
 
 
 def table_target_rms_px(params, data) -> float:

@@ -314,10 +314,13 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
 def _table_target(cal) -> dict:
     """`{"table_target": {"steps", "rms_px"}}` of a stage calibrated with a target on the
     table (its data at hand), else `{}`."""
-    table = getattr(getattr(cal, "data", None), "table", None)
+    from ..calibrate._model import CalibrationData
+    from ..calibrate._stage_table import table_target_rms_px
+
+    data = getattr(cal, "data", None)  # not CalibrationData: read without observations
+    table = data.table if isinstance(data, CalibrationData) else None
     if table is None or getattr(cal.params, "table_pose", None) is None:
         return {}
-    from ..calibrate._stage_table import table_target_rms_px
 
     steps = np.asarray(table.steps)[np.asarray(table.w).sum(axis=1) > 0]
     rms = table_target_rms_px(cal.params, cal.data)
