@@ -183,12 +183,22 @@ def _profile(path: str) -> None:
     )
 
 
+#: CPU seconds (user + system) of each timed process, by its wall time: on a shared,
+#: loaded machine the wall times of two runs compare poorly, their CPU times well.
+_CPU: dict[float, float] = {}
+
+
 def _process(cmd, env, cwd=None) -> float:
+    import resource
+
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=cwd)
     dt = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {out.stderr.strip()[-400:]}")
+    _CPU[dt] = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     return dt
 
 
@@ -263,7 +273,7 @@ def cold_start(views: int = 15, baseline: str | None = None, obs_path: str | Non
           f"{tot['lower']:>8.2f} {tot['xla']:>8.2f}")
     print(f"LM programs traced {prof['solve_traces']}× in the whole calibration; steps "
           f"{prof['steps']}; traces in a second calibration: {prof['second_traces']}\n")
-    print(f"{'what':<52} {'time s':>8} {'÷ OpenCV':>9}")
+    print(f"{'what':<52} {'time s':>8} {'÷ OpenCV':>9} {'CPU s':>8}")
     table = [
         ("import scheimflux", t_import),
         ("import jax, equinox, optimistix", t_import_jax),
@@ -286,7 +296,8 @@ def cold_start(views: int = 15, baseline: str | None = None, obs_path: str | Non
             ("baseline:   of which the joint LM solve", base["joint"]),
         ]
     for name, t in table:
-        print(f"{name:<52} {t:>8.2f} {t / t_cv:>9.2f}")
+        cpu = f"{_CPU[t]:>8.2f}" if t in _CPU else ""
+        print(f"{name:<52} {t:>8.2f} {t / t_cv:>9.2f} {cpu}")
     if base:
         print(f"LM steps: baseline {base['steps']}, now {prof['steps']}")
     print("\ntargets: cold ≤ 3× OpenCV: "
