@@ -17,6 +17,10 @@ from scheimflux.io import read_observations
 from scheimflux.simulate._images import write_scene_images
 from scheimflux.targets import CharucoBoard, Checkerboard, CircleGrid
 
+# The single-layout captures of these tests render an overexposed laser line (its peak
+# 153 times the full scale): clipped into a plateau of ~14 px for a 5 px line, a hard case
+# users photograph, and the one on which the results below were measured.
+CLIPPED = 0.6 * 255
 CROP = np.array([400.0, 300.0])  # 800 x 600 crop of the paper's sensor: fast renders
 
 
@@ -172,13 +176,37 @@ def _scene_at(cam, target, frac, rot=183.0):
     return rig, truth, to_px(target.points_mm[:, :2])
 
 
+def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):
+    # `laser_peak` is the line's peak on a white surface as a fraction of full scale: the
+    # image is albedo × (ambient + laser_peak × line), so (on − off) / off × ambient, where
+    # off is the laser-off image (same seed, no noise), is laser_peak × the line's profile,
+    # whatever the albedo. On the white squares (off ≥ 50 grey levels, quantisation
+    # ≤ 0.5/50 of it) its largest value is laser_peak × the sampled profile peak (a 5 px
+    # FWHM Gaussian sampled within half a pixel of its centre keeps ≥ 97 %), ± 2 %.
+    target = Checkerboard(7, 6, 0.2)
+    rig, truth, _ = _scene(cam, target)
+    ambient = 0.55
+    kw = dict(layout="single", noise_sigma=0.0, ambient_level=ambient, seed=4)
+    write_scene_images(tmp_path / "on", rig, target, truth, laser_peak=0.3, **kw)
+    write_scene_images(tmp_path / "off", rig, target, truth, laser_peak=0.0, **kw)
+    on = cv2.imread(str(tmp_path / "on" / "view_0.png"), cv2.IMREAD_UNCHANGED).astype(float)
+    off = cv2.imread(str(tmp_path / "off" / "view_0.png"), cv2.IMREAD_UNCHANGED).astype(float)
+    assert on.max() < 255  # nothing clips: 0.3 + 0.55 < 1
+    white = off >= 50
+    profile = np.where(white, (on - off) / np.maximum(off, 1.0) * ambient, 0.0)
+    assert 0.97 * 0.3 * 0.98 <= profile.max() <= 0.3 * 1.02, profile.max()
+    # a line 5 px wide, not a plateau: on each column (the line runs across the image)
+    # at most 7 pixels hold more than half its peak (FWHM 5 px, tilt, quantisation)
+    assert (profile > 0.5 * profile.max()).sum(axis=0).max() <= 7
+
+
 def test_single_grey_stripe_on_board(cam, tmp_path):
     """A grey single image of a circle grid: the dots are bridged (`fill_holes`), the
     line is found between them on the renderer's exact line, and the dots it passes
     near are dropped."""
     target = CircleGrid(7, 6, 0.2, 0.08)
     rig, truth, corners = _scene(cam, target)
-    write_scene_images(tmp_path, rig, target, truth, layout="single", seed=1)
+    write_scene_images(tmp_path, rig, target, truth, layout="single", laser_peak=CLIPPED, seed=1)
     obs, report = detect_captures(tmp_path, target)
     line = truth.stripe_px[0]
     st = obs.views[0].stripe_px
@@ -207,7 +235,8 @@ def test_board_stripe_clipped_line_with_laser_off(cam, tmp_path, target):
     from scheimflux.capture import board_region, board_stripe
 
     rig, truth, corners = _scene(cam, target)
-    write_scene_images(tmp_path / "on", rig, target, truth, layout="single", seed=1)
+    write_scene_images(tmp_path / "on", rig, target, truth, layout="single",
+                       laser_peak=CLIPPED, seed=1)  # fmt: skip
     write_scene_images(tmp_path / "off", rig, target, truth, layout="single", seed=2,
                        laser_peak=0.0)  # fmt: skip
     on = cv2.imread(str(tmp_path / "on" / "view_0.png"), cv2.IMREAD_UNCHANGED)
@@ -241,7 +270,8 @@ def test_laser_removed_stands_in_for_laser_off(cam, tmp_path):
 
     target = CircleGrid(7, 6, 0.2, 0.08)
     rig, truth, corners = _scene(cam, target)
-    write_scene_images(tmp_path / "on", rig, target, truth, layout="single", seed=3)
+    write_scene_images(tmp_path / "on", rig, target, truth, layout="single",
+                       laser_peak=CLIPPED, seed=3)  # fmt: skip
     write_scene_images(tmp_path / "off", rig, target, truth, layout="single", seed=3,
                        laser_peak=0.0)  # fmt: skip
     on = cv2.imread(str(tmp_path / "on" / "view_0.png"), cv2.IMREAD_UNCHANGED)
@@ -297,7 +327,7 @@ def test_single_grey_points_near_laser_dropped(cam, tmp_path, target):
     for i, frac in enumerate((0.1, 0.3, 0.45)):
         rig, truth, corners = _scene_at(cam, target, frac)
         folder = tmp_path / str(i)
-        write_scene_images(folder, rig, target, truth, layout="single", seed=i)
+        write_scene_images(folder, rig, target, truth, layout="single", laser_peak=CLIPPED, seed=i)
         obs, _ = detect_captures(folder, target)
         v = obs.views[0]
         m = v.corner_mask
@@ -322,7 +352,7 @@ def test_colour_jpeg_points_near_laser_dropped(cam, tmp_path):
         rig, truth, corners = _scene_at(cam, target, frac)
         folder = tmp_path / str(i)
         write_scene_images(folder, rig, target, truth, layout="single", colour=True, ext="jpg",
-                           seed=1)  # fmt: skip
+                           laser_peak=CLIPPED, seed=1)  # fmt: skip
         obs, report = detect_captures(folder, target)
         v = obs.views[0]
         m = v.corner_mask
@@ -393,7 +423,11 @@ def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
     board = CharucoBoard(8, 6, 0.2, 0.14)
     rig, truth, corners = _scene(cam, board, rots=(183.0, 188.0, 178.0))
     images, parts = tmp_path / "images", tmp_path / "parts"
-    kinds = [("pair", {}), ("single", dict(colour=True, ext="jpg")), ("single", {})]
+    kinds = [
+        ("pair", {}),
+        ("single", dict(colour=True, ext="jpg", laser_peak=CLIPPED)),
+        ("single", dict(laser_peak=CLIPPED)),
+    ]
     for k, (layout, kw) in enumerate(kinds):
         one = types.SimpleNamespace(board_poses=[truth.board_poses[k]],
                                     stripe_px=[truth.stripe_px[k]], scan_px=[])  # fmt: skip
@@ -538,9 +572,9 @@ E2E_TARGETS = {
 }
 E2E_LAYOUTS = {  # write_scene_images options, and whether a laser-off image is added
     "pair": (dict(layout="pair"), False),
-    "single-colour-jpg": (dict(layout="single", colour=True, ext="jpg"), False),
-    "single-grey-off": (dict(layout="single"), True),
-    "single-grey": (dict(layout="single"), False),
+    "single-colour-jpg": (dict(layout="single", colour=True, ext="jpg", laser_peak=CLIPPED), False),
+    "single-grey-off": (dict(layout="single", laser_peak=CLIPPED), True),
+    "single-grey": (dict(layout="single", laser_peak=CLIPPED), False),
 }
 
 
@@ -575,7 +609,7 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
     write_scene_images(images, rig, target, truth, seed=seed, **write_kw)
     if laser_off:  # the same poses, the laser off (other noise)
         write_scene_images(tmp_path / "off", rig, target, truth, seed=seed + 1,
-                           laser_peak=0.0, **write_kw)  # fmt: skip
+                           **{**write_kw, "laser_peak": 0.0})  # fmt: skip
         for k in range(n_views):
             (tmp_path / "off" / f"view_{k}.png").rename(images / f"view_{k}_off.png")
     obs_path, cal = tmp_path / "obs.json", tmp_path / "cal.json"

@@ -143,7 +143,9 @@ def write_scene_images(
     - `ambient`: background of the stripe images (pair layout, scan), `"dark"`, `"low"`
       or `"bright"`.
     - `ambient_level`, `laser_peak`: room light and laser peak (fractions of full scale
-      on a white surface) of the single layout.
+      on a white surface) of the single layout; a `laser_peak` far above
+      `1 - ambient_level` renders an overexposed line, clipped into a plateau wider than
+      the line (e.g. `0.6 * 255`: about 14 px for a 5 px line).
     - `stripe_width_px`: FWHM of the laser line (px).
     - `bit_depth`: 8, 12 or 16 (16-bit PNG/TIFF above 8; JPEG and BMP need 8).
     - `noise_sigma`: additive Gaussian noise, fraction of full scale.
@@ -208,10 +210,12 @@ def write_scene_images(
                 albedo = render_target(
                     board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
                 ) / 65535.0  # fmt: skip
+                # the line's profile, peak 1 (unclipped grey levels of an 8-bit image
+                # divided by its full scale)
                 laser = _stripe_image(
                     shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
-                    ambient=0.0, noise_sigma=0.0, saturate=False, seed=s,
-                )  # fmt: skip
+                    ambient=0.0, noise_sigma=0.0, saturate=False, bit_depth=8, seed=s,
+                ) / 255.0  # fmt: skip
                 rng = np.random.default_rng(s)
                 lit = albedo * float(ambient_level)
                 if colour:  # grey room light on every channel, the red laser on R only
