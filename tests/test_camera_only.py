@@ -173,7 +173,8 @@ def test_stage_scan_without_board_stripes_is_refused():
         obs.views,
         stage=StageScan(10.0, 17.5, [np.ones((4, 2))]),
     )
-    with pytest.raises(ValueError, match="rotary-stage scan or table target but no stripe pixels on any board view"):
+    match = "rotary-stage scan or table target but no stripe pixels on any board view"
+    with pytest.raises(ValueError, match=match):
         calibrate(obs, model="opencv")
 
 
