@@ -129,7 +129,8 @@ def test_find_captures_layouts(tmp_path):
 def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     rig, truth, corners = _scene(cam, target)
     images = tmp_path / "images"
-    write_scene_images(images, rig, target, truth, layout=layout, ext=ext, colour=colour, seed=1)
+    write_scene_images(images, rig, target, truth, layout=layout, ext=ext, colour=colour,
+                       laser_peak=CLIPPED, seed=1)  # fmt: skip
     obs, report = detect_captures(images, target, preview_dir=tmp_path / "preview")
     assert report.kept == [0] and not report.dropped
     v = obs.views[0]
@@ -157,6 +158,27 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     preview = cv2.imread(str(tmp_path / "preview" / "view_0_preview.png"))
     assert preview.shape == (600, 800, 3)
     assert obs.pixel_pitch_mm is None
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a ChArUco board with an unclipped laser line (peak 0.3-0.6 of full scale): the "
+    "line shows only on the white strips around the markers (black albedo ~0.04 leaves it "
+    "~6 grey levels there), and the extractor returns no centre (grey and colour, PNG); "
+    "the same line clipped is found. Checkerboard and circle grid are found at this "
+    "exposure. The capture refuses the view's line ('no laser line found'), not a wrong one",
+)
+@pytest.mark.parametrize("colour", [False, True], ids=["grey", "colour"])
+def test_charuco_unclipped_line_is_found(cam, tmp_path, colour):
+    target = CharucoBoard(8, 6, 0.2, 0.14)
+    rig, truth, _ = _scene(cam, target)
+    write_scene_images(tmp_path, rig, target, truth, layout="single", colour=colour,
+                       laser_peak=0.6, seed=1)  # fmt: skip
+    obs, report = detect_captures(tmp_path, target)
+    line = truth.stripe_px[0]
+    st = obs.views[0].stripe_px
+    d = _near_line(st, line)
+    assert len(st) > 0.3 * np.ptp(line[:, 0]) and (d < 0.5).mean() > 0.99, (len(st), d)
 
 
 def _scene_at(cam, target, frac, rot=183.0):
