@@ -149,6 +149,8 @@ def detect_stage_target(
         if reason:
             drop(k, names, reason)
             continue
+        if res.message:
+            say(f"table step {k}: {res.message}")
         line = line_and_points(image, off, image, opened, res, target, single=True,
                                jpeg=_is_jpeg(name), stripe_width_px=stripe_width_px,
                                margin_px=margin_px, min_points=min_points,
