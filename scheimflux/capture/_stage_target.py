@@ -4,11 +4,12 @@ Layout of the folder (`detect --stage-target DIR --delta-omega-deg D`): every im
 (`png`, `jpg`, `jpeg`, `tif`, `tiff`, `bmp`, any case) is one table step, in natural name
 order (`step_2` before `step_10`): the k-th image was taken with the table turned by
 `k · D` degrees from the first. Beside a step image `NAME.EXT`, `NAME_off.EXT` (any image
-type) is the same step with the laser off: it is no step of its own. Other files are
-ignored. An image in which the target is not found (or with fewer than `min_points` of
-its points, unreadable, or of another size than the board images) is dropped with the
-reason, and the steps of the others keep their numbers: the angle of a view is its step
-× Δω, so a lost image must not shift the rest.
+type) is the same step with the laser off: it is no step of its own (alone, without
+`NAME.EXT`, it is that step). Other files are ignored. An image in which the target is
+not found (or with fewer than `min_points` of its points, unreadable, or of another size
+than the board images) is dropped with the reason, and the steps of the others keep
+their numbers: the angle of a view is its step × Δω, so a lost image must not shift the
+rest.
 
 The laser may be on or off. Each step image goes through the board views' per-image
 logic (`_image.py`): with the laser on, the line on the target is extracted inside the

@@ -9,7 +9,9 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
 its target points with an empty stripe list (a note says so). A view with an image of
 another size than the first one read is dropped too (it cannot come from the same
-sensor), naming the file and both sizes: what the other views gave is kept.
+sensor), naming the file and both sizes: what the other views gave is kept. The
+per-image logic (target, laser line, points within its reach) is `_image.py`, shared
+with the steps of a target on the rotary table (`_stage_target.py`).
 """
 
 from __future__ import annotations
