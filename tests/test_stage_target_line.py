@@ -175,8 +175,12 @@ def test_cli_writes_stage_target_stripe(board_table, capsys):
     argv = ["detect", str(images), "--board", "7x6", "--square-mm", "0.2", "--out", str(out),
             "--stage-target", str(pair), "--delta-omega-deg", "5"]  # fmt: skip
     assert main(argv) == 0
-    capsys.readouterr()
     doc = json.loads(out.read_text())
+    n = sum(len(v["stripe_px"]) for v in doc["stage_target"]["views"])
+    assert (
+        f"table target at 3 of 3 table step(s) ({n} laser-line points on it)"
+        in capsys.readouterr().out
+    )
     assert all(len(v["stripe_px"]) > 100 for v in doc["stage_target"]["views"])
     st = read_observations(out).stage_target
     assert st.sources[0] == ("step_0.png", "step_0_off.png")

@@ -257,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
         + (
             f", table target at {len(obs.stage_target.table_steps)} of "
             f"{len(obs.stage_target.table_steps) + len(obs.stage_target.dropped)} table step(s)"
+            f" ({sum(len(p) for p in obs.stage_target.stripe_px)} laser-line points on it)"
             if obs.stage_target
             else ""
         )
