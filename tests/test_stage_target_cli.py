@@ -70,6 +70,7 @@ def test_cli_stage_target_layout(folders, capsys):
     assert [d.view for d in st.dropped] == [2, 3]
     assert st.sources == (("step_1.png",), ("step_2.png",), ("step_11.png",))
     np.testing.assert_allclose(st.board_points_mm, SMALL.points_mm)
+    assert all(len(s) == 0 for s in st.stripe_px)  # no laser in these renders: no line
     for k, step in enumerate(st.table_steps):
         # the detected corners are the rendered truth (detection accuracy: test_detect)
         err = np.linalg.norm(st.corners_px[k] - truths[int(step)], axis=1)

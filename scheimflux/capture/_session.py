@@ -52,8 +52,10 @@ def detect_session(
       per frame) and `gauge_radius_mm` (nominal gauge radius). Its frames must have the
       board images' size.
     - `stage_target`: folder of a target fixed to the rotary table, one image per
-      table step in natural name order ([`detect_stage_target`][]); needs
-      `delta_omega_deg`. `stage_target_board`: that target (default: `target`).
+      table step in natural name order, `NAME_off.EXT` beside a step image its laser-off
+      image ([`detect_stage_target`][]: the laser line on the target into each step's
+      `stripe_px`); needs `delta_omega_deg`. `stage_target_board`: that target
+      (default: `target`).
     - `on_note`: called with each one-line remark while running (dropped views, notes,
       ignored files, scan frames kept empty, no pixel pitch).
 
@@ -125,6 +127,8 @@ def detect_session(
             target if stage_target_board is None else stage_target_board,
             delta_omega_deg,
             shape=(obs.height, obs.width),
+            stripe_width_px=stripe_width_px,
+            margin_px=margin_px,
             min_points=min_points,
             mirrored=mirrored,
             on_step=step_note,

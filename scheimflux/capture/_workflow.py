@@ -9,7 +9,9 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
 its target points with an empty stripe list (a note says so). A view with an image of
 another size than the first one read is dropped too (it cannot come from the same
-sensor), naming the file and both sizes: what the other views gave is kept.
+sensor), naming the file and both sizes: what the other views gave is kept. The
+per-image logic (target, laser line, points within its reach) is `_image.py`, shared
+with the steps of a target on the rotary table (`_stage_target.py`).
 """
 
 from __future__ import annotations
@@ -21,19 +23,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..io._observations import DroppedView, Nominal, Observations, StageScan, View
-from ..targets._circles import CircleGrid
-from ..targets._result import DetectionResult
-from ..targets._target import Target, detect_target
+from ..targets._target import Target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
-from ._laser import (
-    JPEG_BLOCK_PX,
-    laser_in_board,
-    laser_removed,
-    near_laser,
-    off_local_grid,
-    target_holes,
-)
-from ._region import board_region, board_stripe, laser_free
+from ._image import _is_jpeg, find_target, line_and_points
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
 
@@ -73,50 +65,6 @@ class _SizeCheck:
                 f"{self.shape[1]}x{self.shape[0]} px (not the same sensor)"
             )
         return ""
-
-
-def _default_margin(uv: np.ndarray, target: Target) -> float:
-    """Half a target pitch in pixels (board region growth), at least 3 px."""
-    ok = np.all(np.isfinite(uv), axis=1)
-    if ok.sum() < 2:
-        return 3.0
-    xy = target.points_mm[ok, :2]
-    span_mm = float(np.ptp(xy, axis=0).max())
-    span_px = float(np.ptp(uv[ok], axis=0).max())
-    pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
-    return max(3.0, 0.5 * pitch * span_px / max(span_mm, 1e-12))
-
-
-def _is_jpeg(path: str) -> bool:
-    """Whether the file is stored as JPEG (by its name: `.jpg`, `.jpeg`, any case)."""
-    return os.path.splitext(os.fspath(path))[1].lower() in (".jpg", ".jpeg")
-
-
-def _too_few(res, target, min_points: int) -> str:
-    """Why a detection cannot be used ("" when it can)."""
-    n = int(res.mask.sum())
-    if not res.found:
-        return res.message or f"{target.kind} not found"
-    if n < min_points:
-        return f"only {n} target points found; {min_points} needed"
-    return ""
-
-
-def _hole_margin(uv: np.ndarray, target: Target, stripe_width_px: float | None) -> float:
-    """Growth of the dot holes beyond the dots' edges: a quarter of the gap between
-    neighbouring dots (half of it stays free for the line), at least twice a given
-    stripe width."""
-    if not isinstance(target, CircleGrid):
-        return 0.0
-    ok = np.all(np.isfinite(uv), axis=1)
-    xy = target.points_mm[ok, :2]
-    span_mm = float(np.ptp(xy, axis=0).max()) if ok.sum() >= 2 else 0.0
-    if span_mm <= 0:
-        return 3.0
-    px_per_mm = float(np.ptp(uv[ok], axis=0).max()) / span_mm
-    gap_mm = target.spacing_mm - target.diameter_mm
-    m = 0.25 * gap_mm * px_per_mm
-    return max(m, 2.0 * float(stripe_width_px)) if stripe_width_px is not None else m
 
 
 def detect_captures(
@@ -166,7 +114,6 @@ def detect_captures(
         os.makedirs(preview_dir, exist_ok=True)
     size = _SizeCheck()
     views: list[View] = []
-    xy = np.asarray(target.points_mm, np.float64)[:, :2]
 
     def drop(cv, reason: str) -> None:
         d = DroppedView(cv.view, cv.names, reason)
@@ -197,17 +144,9 @@ def detect_captures(
             elif size.mismatch(off, cv.off):
                 drop(cv, size.mismatch(off, cv.off))
                 continue
-        # the target is detected in a laser-free image where there is one; a grey
-        # single image of a circle grid without one: in the image with the line taken
-        # out by an opening (`laser_removed`: a line across the dots splits their blobs
-        # and the grid is lost); the dots it crossed are dropped below (`near_laser`)
-        found_in, opened = image if off is None else off, None
-        if (off is None and cv.layout == "single" and isinstance(target, CircleGrid)
-                and laser_in_board(image)):  # fmt: skip
-            opened = laser_removed(image, target)
-            found_in = image if opened is None else opened
-        res = detect_target(laser_free(found_in), target, mirrored=mirrored)
-        reason = _too_few(res, target, min_points)
+        single = cv.layout == "single"
+        res, opened, reason = find_target(image, off, target, single=single,
+                                          min_points=min_points, mirrored=mirrored)  # fmt: skip
         if reason:
             if preview_dir is not None:
                 report.previews.append(_preview(preview_dir, cv, image, res.corners_px, None,
@@ -216,13 +155,7 @@ def detect_captures(
             continue
         if res.message:
             note(cv, res.message)
-        corners = res.corners_px
-        shape = image.shape[:2]
-        m = _default_margin(corners, target) if margin_px is None else float(margin_px)
-        mask, hull = board_region(
-            corners, shape, margin_px=m, board_xy_mm=xy, extent_mm=target.extent_mm
-        )
-        stripe_uv, stripe_res, simg = np.zeros((0, 2)), None, None
+        simg = None
         if cv.stripe is None:
             note(cv, f"no stripe image (view_{cv.view}_stripe.<ext>); no stripe")
         else:
@@ -232,73 +165,21 @@ def detect_captures(
             elif size.mismatch(simg, cv.stripe):
                 drop(cv, size.mismatch(simg, cv.stripe))
                 continue
-            else:
-                # one grey image of target and line (no laser-off image): keep the line
-                # out of the dots, and the points out of the line's reach (_laser.py);
-                # a colour JPEG keeps some of the line in every channel (_laser.py): its
-                # points are kept out of the line's reach too, grown by a chroma block
-                single = cv.layout == "single" and off is None
-                grey = single and laser_in_board(image)
-                jpeg = _is_jpeg(cv.board)
-                shared = grey or (single and jpeg)
-                attempts = [(simg, None)]  # (signal image, holes)
-                if grey and isinstance(target, CircleGrid):
-                    grow = _hole_margin(corners, target, stripe_width_px)
-                    attempts = [(simg, target_holes(target, corners, shape, margin_px=grow))]
-                    if opened is not None:
-                        # first the line alone: the image less its opening; where the line
-                        # crosses a dot's edge the opening leaves a notch, so no centre on
-                        # a dot (grown by a line width) is kept. The attempt that keeps
-                        # more centres wins (a saturated line can be refused in either)
-                        w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
-                        diff = image.astype(np.float32) - opened.astype(np.float32)
-                        attempts.insert(0, (diff, target_holes(target, corners, shape,
-                                                                margin_px=w5)))  # fmt: skip
-                for signal, holes in attempts:
-                    try:
-                        res_i, inside = board_stripe(
-                            signal, mask, width_px=stripe_width_px, background=off,
-                            holes=holes,
-                        )  # fmt: skip
-                    except ValueError as err:
-                        note(cv, f"no stripe extracted: {err}")
-                        continue
-                    ok_i = res_i.valid & inside
-                    if stripe_res is None or ok_i.sum() > len(stripe_uv):
-                        stripe_res, ok, stripe_uv = res_i, ok_i, res_i.uv[ok_i]
-                if len(stripe_uv) == 0 and stripe_res is not None:
-                    note(cv, "no laser line found on the board")
-                if shared:
-                    hit = off_local_grid(target, corners)
-                    if len(stripe_uv):
-                        w = stripe_res.width[ok]
-                        w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0
-                        if stripe_width_px is not None:
-                            w = max(w, float(stripe_width_px))
-                        hit |= near_laser(target, corners, stripe_uv, w,
-                                          orientation=stripe_res.orientation,
-                                          extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
-                    if hit.any():
-                        corners = corners.copy()
-                        corners[hit] = np.nan
-                        kind = "grey" if grey else "colour JPEG"
-                        note(cv, f"{int(hit.sum())} point(s) within the laser line's "
-                                 f"reach or off their local grid dropped ({kind} single "
-                                 "image)")  # fmt: skip
-                        res = DetectionResult(corners, True, res.message)
-                        reason = _too_few(res, target, min_points)
-                        if reason:
-                            if preview_dir is not None:
-                                report.previews.append(
-                                    _preview(preview_dir, cv, image, corners, hull, stripe_res,
-                                             mask, reason)
-                                )  # fmt: skip
-                            drop(cv, reason + " (the others lie under the laser line)")
-                            continue
+        line = line_and_points(image, off, simg, opened, res, target, single=single,
+                               jpeg=_is_jpeg(cv.board), stripe_width_px=stripe_width_px,
+                               margin_px=margin_px, min_points=min_points,
+                               note=lambda text, cv=cv: note(cv, text))  # fmt: skip
+        corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
+        if line.reason:
+            if preview_dir is not None:
+                report.previews.append(_preview(preview_dir, cv, image, corners, line.hull,
+                                                stripe_res, line.mask, line.reason))  # fmt: skip
+            drop(cv, line.reason)
+            continue
         if preview_dir is not None:
             report.previews.append(
                 _preview(preview_dir, cv, simg if simg is not None else image, corners,
-                         hull, stripe_res, mask, "")
+                         line.hull, stripe_res, line.mask, "")
             )  # fmt: skip
         views.append(View(corners, stripe_uv, cv.names))
         report.kept.append(cv.view)

@@ -28,8 +28,12 @@ an unreadable frame is reported and kept as an empty frame so frame indices stay
 
 --stage-target DIR adds a target fixed to the rotary table (the table axis from its
 turning, docs/stage.md): every image in DIR, in natural name order, is one table step (the
-table turned by --delta-omega-deg between images). A step whose target is not found is
-dropped with the reason and the others keep their step numbers. The table target is the
+table turned by --delta-omega-deg between images); NAME_off.EXT beside NAME.EXT is that
+step with the laser off (no step of its own). The laser line on the table target is
+extracted as on the boards (into the step's stripe_px), and in grey images without a
+laser-off image the target points within its reach are dropped. A step whose target is
+not found is dropped with the reason and the others keep their step numbers. The table
+target is the
 calibration target unless --stage-target-board/--stage-target-square-mm give another
 (same --target kind).
 
@@ -253,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
         + (
             f", table target at {len(obs.stage_target.table_steps)} of "
             f"{len(obs.stage_target.table_steps) + len(obs.stage_target.dropped)} table step(s)"
+            f" ({sum(len(p) for p in obs.stage_target.stripe_px)} laser-line points on it)"
             if obs.stage_target
             else ""
         )

@@ -1,0 +1,217 @@
+"""One image of a target (and perhaps the laser line): the target found in it, the laser
+line inside the target's region, and the points the line may have displaced left out.
+
+This is the per-image logic of a capture folder's views ([`detect_captures`][]) and of
+the table target's steps ([`detect_stage_target`][]): one grey image of target and line
+(no laser-off image) keeps the line out of a circle grid's dots and the points out of
+the line's reach (`_laser.py`), a laser-off image beside it lets both be detected as in
+a pair, a colour JPEG's points are kept out of the line's reach grown by a chroma block.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable
+
+import numpy as np
+
+from ..targets._circles import CircleGrid
+from ..targets._result import DetectionResult
+from ..targets._target import Target, detect_target
+from ._laser import (
+    JPEG_BLOCK_PX,
+    laser_in_board,
+    laser_removed,
+    near_laser,
+    off_local_grid,
+    target_holes,
+)
+from ._region import board_region, board_stripe, laser_free
+
+__all__ = ["ImageLine", "find_target", "line_and_points"]
+
+
+def _default_margin(uv: np.ndarray, target: Target) -> float:
+    """Half a target pitch in pixels (board region growth), at least 3 px."""
+    ok = np.all(np.isfinite(uv), axis=1)
+    if ok.sum() < 2:
+        return 3.0
+    xy = target.points_mm[ok, :2]
+    span_mm = float(np.ptp(xy, axis=0).max())
+    span_px = float(np.ptp(uv[ok], axis=0).max())
+    pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
+    return max(3.0, 0.5 * pitch * span_px / max(span_mm, 1e-12))
+
+
+def _is_jpeg(path: str) -> bool:
+    """Whether the file is stored as JPEG (by its name: `.jpg`, `.jpeg`, any case)."""
+    return os.path.splitext(os.fspath(path))[1].lower() in (".jpg", ".jpeg")
+
+
+def _too_few(res, target, min_points: int) -> str:
+    """Why a detection cannot be used ("" when it can)."""
+    n = int(res.mask.sum())
+    if not res.found:
+        return res.message or f"{target.kind} not found"
+    if n < min_points:
+        return f"only {n} target points found; {min_points} needed"
+    return ""
+
+
+def _hole_margin(uv: np.ndarray, target: Target, stripe_width_px: float | None) -> float:
+    """Growth of the dot holes beyond the dots' edges: a quarter of the gap between
+    neighbouring dots (half of it stays free for the line), at least twice a given
+    stripe width."""
+    if not isinstance(target, CircleGrid):
+        return 0.0
+    ok = np.all(np.isfinite(uv), axis=1)
+    xy = target.points_mm[ok, :2]
+    span_mm = float(np.ptp(xy, axis=0).max()) if ok.sum() >= 2 else 0.0
+    if span_mm <= 0:
+        return 3.0
+    px_per_mm = float(np.ptp(uv[ok], axis=0).max()) / span_mm
+    gap_mm = target.spacing_mm - target.diameter_mm
+    m = 0.25 * gap_mm * px_per_mm
+    return max(m, 2.0 * float(stripe_width_px)) if stripe_width_px is not None else m
+
+
+@dataclasses.dataclass
+class ImageLine:
+    """The laser line on a detected target and the target points left after it
+    ([`line_and_points`][]).
+
+    **Fields:**
+    - `corners`: `(M, 2)` target points, NaN where not found or within the line's reach.
+    - `stripe_uv`: `(K, 2)` laser centres on the target's region (empty: no line).
+    - `stripe`: the extractor's `StripeResult` the centres came from (None: none run).
+    - `mask`, `hull`: the target's region (`board_region`) and its outline.
+    - `reason`: why the image cannot be used ("" when it can: too few points are left
+      once those under the line are dropped).
+    """
+
+    corners: np.ndarray
+    stripe_uv: np.ndarray
+    stripe: object
+    mask: np.ndarray
+    hull: np.ndarray
+    reason: str = ""
+
+
+def find_target(image, off, target: Target, *, single: bool, min_points: int,
+                mirrored: bool) -> tuple[DetectionResult, np.ndarray | None, str]:  # fmt: skip
+    """Detect the target in one image of target (and perhaps laser line).
+
+    The target is detected in a laser-free image where there is one (`off`, the same
+    pose with the laser off); a grey single image of a circle grid without one: in the
+    image with the line taken out by an opening (`laser_removed`: a line across the dots
+    splits their blobs and the grid is lost); the dots it crossed are dropped later
+    (`near_laser`, in [`line_and_points`][]).
+
+    **Arguments:**
+    - `image`: the image (board and line in one when `single`); `off`: its laser-off
+      image, or None.
+    - `target`, `min_points`, `mirrored`: as for `detect_captures`.
+
+    **Returns:** `(result, opened, reason)`: the detection, the opened image (None when
+    not used) and why the detection cannot be used ("" when it can).
+    """
+    found_in, opened = image if off is None else off, None
+    if off is None and single and isinstance(target, CircleGrid) and laser_in_board(image):
+        opened = laser_removed(image, target)
+        found_in = image if opened is None else opened
+    res = detect_target(laser_free(found_in), target, mirrored=mirrored)
+    return res, opened, _too_few(res, target, min_points)
+
+
+def line_and_points(
+    image,
+    off,
+    simg,
+    opened,
+    res: DetectionResult,
+    target: Target,
+    *,
+    single: bool,
+    jpeg: bool,
+    stripe_width_px: float | None,
+    margin_px: float | None,
+    min_points: int,
+    note: Callable[[str], None],
+) -> ImageLine:
+    """The laser line inside a detected target's region, and the target points out of
+    its reach ([`find_target`][] gave `res` and `opened`).
+
+    One grey image of target and line (no laser-off image): the line is kept out of the
+    dots, and the points out of the line's reach (`_laser.py`); a colour JPEG keeps some
+    of the line in every channel (`_laser.py`): its points are kept out of the line's
+    reach too, grown by a chroma block.
+
+    **Arguments:**
+    - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
+      line is extracted from (`image` itself in a single image; None: no line).
+    - `single`: `image` holds target and line; `jpeg`: it is stored as JPEG.
+    - `stripe_width_px`, `margin_px`, `min_points`: as for `detect_captures`.
+    - `note`: called with each one-line remark.
+
+    **Returns:** [`ImageLine`][].
+    """
+    corners = res.corners_px
+    shape = image.shape[:2]
+    xy = np.asarray(target.points_mm, np.float64)[:, :2]
+    m = _default_margin(corners, target) if margin_px is None else float(margin_px)
+    mask, hull = board_region(
+        corners, shape, margin_px=m, board_xy_mm=xy, extent_mm=target.extent_mm
+    )
+    out = ImageLine(corners, np.zeros((0, 2)), None, mask, hull)
+    if simg is None:
+        return out
+    single = single and off is None
+    grey = single and laser_in_board(image)
+    shared = grey or (single and jpeg)
+    attempts = [(simg, None)]  # (signal image, holes)
+    if grey and isinstance(target, CircleGrid):
+        grow = _hole_margin(corners, target, stripe_width_px)
+        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow))]
+        if opened is not None:
+            # first the line alone: the image less its opening; where the line crosses a
+            # dot's edge the opening leaves a notch, so no centre on a dot (grown by a line
+            # width) is kept. The attempt that keeps more centres wins (a saturated line
+            # can be refused in either)
+            w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
+            diff = image.astype(np.float32) - opened.astype(np.float32)
+            attempts.insert(0, (diff, target_holes(target, corners, shape, margin_px=w5)))
+    ok = None
+    for signal, holes in attempts:
+        try:
+            res_i, inside = board_stripe(
+                signal, mask, width_px=stripe_width_px, background=off, holes=holes
+            )
+        except ValueError as err:
+            note(f"no stripe extracted: {err}")
+            continue
+        ok_i = res_i.valid & inside
+        if out.stripe is None or ok_i.sum() > len(out.stripe_uv):
+            out.stripe, ok, out.stripe_uv = res_i, ok_i, res_i.uv[ok_i]
+    if len(out.stripe_uv) == 0 and out.stripe is not None:
+        note("no laser line found on the board")
+    if not shared:
+        return out
+    hit = off_local_grid(target, corners)
+    if len(out.stripe_uv):
+        w = out.stripe.width[ok]
+        w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0
+        if stripe_width_px is not None:
+            w = max(w, float(stripe_width_px))
+        hit |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
+                          extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
+    if hit.any():
+        out.corners = corners = corners.copy()
+        corners[hit] = np.nan
+        kind = "grey" if grey else "colour JPEG"
+        note(f"{int(hit.sum())} point(s) within the laser line's reach or off their local "
+             f"grid dropped ({kind} single image)")  # fmt: skip
+        reason = _too_few(DetectionResult(corners, True, res.message), target, min_points)
+        if reason:
+            out.reason = reason + " (the others lie under the laser line)"
+    return out
