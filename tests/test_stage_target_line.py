@@ -12,7 +12,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from test_capture import _near_line, _scene_at
+from test_capture import CLIPPED, _near_line, _scene_at
 from test_detect import SMALL, _render
 
 import scheimflux as sf
@@ -27,9 +27,10 @@ from scheimflux.targets import CircleGrid
 ROTS = (183.0, 188.0, 193.0)  # table steps of 5 degrees (the board turned in its plane)
 
 
-def make_table(root, target, peak=0.6):
+def make_table(root, target, peak=CLIPPED):
     """Folders `on` (grey single images, laser on) and `pair` (the same, each with its
-    laser-off image `step_<k>_off.png`), and per step the true corners and line."""
+    laser-off image `step_<k>_off.png`), and per step the true corners and line. The line
+    is overexposed as in the board views' capture tests (`CLIPPED`)."""
     cam = sf.paper_thick_lens()
     on, pair, work = root / "on", root / "pair", root / "work"
     on.mkdir()
