@@ -300,7 +300,7 @@ def _camera_points(cal, uv):
     from ..reconstruct import stripe_to_camera
 
     rec = stripe_to_camera(cal.camera, cal.params.plane, uv)
-    X = np.asarray(rec.points, dtype=np.float64)
+    X = np.array(rec.points, dtype=np.float64)  # a copy: a JAX array's view is read-only
     X[np.asarray(rec.status) != 0] = np.nan
     return X
 
