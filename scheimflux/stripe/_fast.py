@@ -102,6 +102,40 @@ def _line_point(rx, ry, rxx, rxy, ryy, inside):
 
 
 @_jit
+def _sorted_window(padded, window):
+    """The first `window` entries of `padded` sorted by insertion, and how many of them
+    are finite (missing entries are +inf)."""
+    buf = np.empty(window)
+    finite = 0
+    for m in range(window):
+        v = padded[m]
+        finite += v < np.inf
+        p = m
+        while p > 0 and buf[p - 1] > v:
+            buf[p] = buf[p - 1]
+            p -= 1
+        buf[p] = v
+    return buf, finite
+
+
+@_jit
+def _slide(buf, gone, v):
+    """Replace the value `gone` of the sorted window `buf` by `v`, in place, keeping it
+    sorted: `v` takes `gone`'s slot and moves down or up to its place."""
+    window = buf.size
+    p = 0
+    while buf[p] != gone:
+        p += 1
+    while p > 0 and buf[p - 1] > v:
+        buf[p] = buf[p - 1]
+        p -= 1
+    while p < window - 1 and buf[p + 1] < v:
+        buf[p] = buf[p + 1]
+        p += 1
+    buf[p] = v
+
+
+@_jit
 def _median_normals(nx, ny, found, window):
     """`_steger._smooth_normal` (float64 out): a sorted sliding window (one removal and
     one insertion per scan line) over the angles, padded as the reference pads them."""
@@ -119,32 +153,14 @@ def _median_normals(nx, ny, found, window):
     for i in range(half):
         padded[i] = padded[half] if all_found else np.inf
         padded[n + half + i] = padded[n + half - 1] if all_found else np.inf
-    buf = np.empty(window)
-    finite = 0
-    for m in range(window):  # the first window, sorted by insertion
-        v = padded[m]
-        finite += v < np.inf
-        p = m
-        while p > 0 and buf[p - 1] > v:
-            buf[p] = buf[p - 1]
-            p -= 1
-        buf[p] = v
+    buf, finite = _sorted_window(padded, window)
     sx = np.empty(n)
     sy = np.empty(n)
     for i in range(n):
         if i > 0:  # slide: the value leaving the window is replaced by the new one
             gone, v = padded[i - 1], padded[i + window - 1]
             finite += (v < np.inf) - (gone < np.inf)
-            p = 0
-            while buf[p] != gone:
-                p += 1
-            while p > 0 and buf[p - 1] > v:
-                buf[p] = buf[p - 1]
-                p -= 1
-            while p < window - 1 and buf[p + 1] < v:
-                buf[p] = buf[p + 1]
-                p += 1
-            buf[p] = v
+            _slide(buf, gone, v)
         if all_found:
             phi = buf[half]
         elif finite >= 3:
@@ -388,31 +404,13 @@ def windowed_median(values, ok, window):
     for i in range(n):
         if ok[i]:
             padded[half + i] = values[i]
-    buf = np.empty(window)
-    finite = 0
-    for m in range(window):
-        v = padded[m]
-        finite += v < np.inf
-        p = m
-        while p > 0 and buf[p - 1] > v:
-            buf[p] = buf[p - 1]
-            p -= 1
-        buf[p] = v
+    buf, finite = _sorted_window(padded, window)
     out = np.empty(n)
     for i in range(n):
-        if i > 0:
+        if i > 0:  # slide: the value leaving the window is replaced by the new one
             gone, v = padded[i - 1], padded[i + window - 1]
             finite += (v < np.inf) - (gone < np.inf)
-            p = 0
-            while buf[p] != gone:
-                p += 1
-            while p > 0 and buf[p - 1] > v:
-                buf[p] = buf[p - 1]
-                p -= 1
-            while p < window - 1 and buf[p + 1] < v:
-                buf[p] = buf[p + 1]
-                p += 1
-            buf[p] = v
+            _slide(buf, gone, v)
         out[i] = buf[(finite - 1) // 2] if finite > 0 else np.nan
     return out
 
