@@ -184,3 +184,25 @@ def test_joint_residuals_back_project_once():
     # the same arithmetic per point; batching may round differently (points agree to
     # ~1e-13 mm, i.e. 1e-10 of σ = 1 µm)
     np.testing.assert_allclose(r, ref, rtol=1e-9, atol=1e-9)
+
+    # with a target on the rotary table its laser-line pixels join the same one
+    # back-projection, and its block is the one computed on its own
+    import dataclasses
+
+    from scheimflux.calibrate._stage_table import TableTargetData, table_target_residuals
+
+    table = TableTargetData(
+        board=data.board, corners=px(F, M), w=jnp.ones((F, M)),
+        steps=jnp.arange(F, dtype=float), stripe=px(F, K),
+        stripe_w=jnp.asarray(rng.integers(0, 2, (F, K)), float),
+    )  # fmt: skip
+    params_t = dataclasses.replace(
+        params, table_pose=Pose(jnp.array([0.1, 0.0, 0.2]), jnp.array([0.5, 0.0, -3.0]))
+    )
+    data_t = dataclasses.replace(data, table=table)
+    assert _count(jax.make_jaxpr(joint_residuals)(params_t, data_t).jaxpr, "scan") == 1
+    r_t = np.asarray(jax.jit(joint_residuals)(params_t, data_t))
+    alone = np.asarray(jax.jit(table_target_residuals)(params_t, data_t))
+    assert np.all(np.isfinite(r_t)) and len(r_t) == len(r) + len(alone)
+    np.testing.assert_allclose(r_t[: len(r)], r, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(r_t[len(r) :], alone, rtol=1e-9, atol=1e-9)

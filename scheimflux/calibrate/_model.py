@@ -18,7 +18,7 @@ from ..camera._base import AbstractCamera
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
-from ._stage_table import TableTargetData, table_target_data
+from ._stage_table import TableTargetData, table_target_data, table_target_residuals
 
 
 class SystemParams(eqx.Module):
@@ -271,10 +271,12 @@ def camera_plane_residuals(params, data):
 
 def joint_residuals(params, data):
     """Corner, board-stripe and gauge residuals, in that order, then the table target's
-    when the observations hold one (`_stage_table`). The stripe and gauge pixels are
-    back-projected together ([`laser_points`][]): the largest compiled program of a
-    calibration holds the camera's back-projection once."""
-    X_s, X_g = laser_points(params.camera, params.plane, data.stripe, data.gauge)
+    when the observations hold one (`_stage_table`). The stripe, gauge and table-target
+    line pixels are back-projected together ([`laser_points`][]): the largest compiled
+    program of a calibration holds the camera's back-projection once."""
+    table = params.table_pose is not None  # a target on the table
+    pixels = (data.stripe, data.gauge) + ((data.table.stripe,) if table else ())
+    X_s, X_g, *X_t = laser_points(params.camera, params.plane, *pixels)
     blocks = [
         corner_residuals(params, data),
         stripe_point_residuals(params.board_poses, X_s, data.stripe_w, data),
@@ -282,8 +284,6 @@ def joint_residuals(params, data):
             params.stage, params.eccentricity, params.plane.n, X_g, data.gauge_w, data
         ),
     ]
-    if params.table_pose is not None:  # a target on the table (`_stage_table`)
-        from ._stage_table import table_target_residuals
-
-        blocks.append(table_target_residuals(params, data))
+    if table:
+        blocks.append(table_target_residuals(params, data, X_t[0]))
     return jnp.concatenate(blocks)

@@ -72,13 +72,16 @@ def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
     uv = np.where(ok[..., None], uv, np.asarray(centre, dtype=np.float64))
     sets = list(target.stripe_px) or [np.zeros((0, 2))] * len(uv)
     stripe, stripe_w = _pad(sets, np.asarray(centre, dtype=np.float64))
+    def put(a):  # no device program per shape (as `make_data`)
+        return jax.device_put(np.asarray(a, dtype=np.float64))
+
     return TableTargetData(
-        board=jnp.asarray(np.asarray(target.board_points_mm, dtype=np.float64)),
-        corners=jnp.asarray(uv),
-        w=jnp.asarray(ok.astype(np.float64)),
-        steps=jnp.asarray(np.asarray(target.table_steps, dtype=np.float64)),
-        stripe=jnp.asarray(stripe),
-        stripe_w=jnp.asarray(stripe_w),
+        board=put(target.board_points_mm),
+        corners=put(uv),
+        w=put(ok),
+        steps=put(target.table_steps),
+        stripe=put(stripe),
+        stripe_w=put(stripe_w),
     )
 
 
@@ -102,32 +105,36 @@ def table_target_errors_px(params, data) -> Float[Array, "F M 2"]:
     return jax.vmap(one)(t.steps, t.corners, t.w)
 
 
-def table_target_residuals(params, data) -> Float[Array, " n"]:
+def table_target_residuals(params, data, X=None) -> Float[Array, " n"]:
     """Reprojection errors of the table target's corners / σ_corner (u and v of each),
-    then [`table_stripe_residuals`][]."""
+    then [`table_stripe_residuals`][]; `X` `(F, K, 3)`: the laser-plane points of the
+    line's pixels when the caller back-projected them already (`joint_residuals` does,
+    with the other blocks' pixels, in one `laser_points` call)."""
     from ._model import _robustify
 
     r = table_target_errors_px(params, data).reshape(-1) / data.sigma_corner_px
-    return jnp.concatenate([_robustify(r, data.robust), table_stripe_residuals(params, data)])
+    return jnp.concatenate([_robustify(r, data.robust), table_stripe_residuals(params, data, X)])
 
 
-def table_stripe_residuals(params, data) -> Float[Array, " n"]:
+def table_stripe_residuals(params, data, X=None) -> Float[Array, " n"]:
     """Distance (mm / σ_stripe) of each laser-line point on the table target (the
-    pixel's ray meeting the laser plane) from the target's plane at its table step: the
-    line ties the laser plane to the table target, hence to the axis."""
-    from ._model import _laser_points_safe, _robustify
+    pixel's ray meeting the laser plane; `X` `(F, K, 3)` if already computed) from the
+    target's plane at its table step: the line ties the laser plane to the table target,
+    hence to the axis."""
+    from ._model import _robustify, laser_points
 
     t = data.table
     st, T = params.stage, params.table_pose
+    if X is None:
+        (X,) = laser_points(params.camera, params.plane, t.stripe)
 
-    def one(step, uv, w):
-        X = _laser_points_safe(params.camera, params.plane, uv)
+    def one(step, X, w):
         Ri = st.frame_rotation(step)
         n_c = st.R_m_c.T @ (Ri.T @ T.R[:, 2])  # the target's normal in the camera frame
         o_c = st.R_m_c.T @ (Ri.T @ T.translation - st.t_m_c)  # its origin
         return (X @ n_c - jnp.dot(n_c, o_c)) * w
 
-    r = jax.vmap(one)(t.steps, t.stripe, t.stripe_w).reshape(-1) / data.sigma_stripe_mm
+    r = jax.vmap(one)(t.steps, X, t.stripe_w).reshape(-1) / data.sigma_stripe_mm
     return _robustify(r, data.robust)
 
 
@@ -201,10 +208,11 @@ def initial_table_target(camera, obs: Observations, *, min_corners: int = 6) -> 
         raise ValueError("the table axis needs the table target at two or more table steps")
     tobs = _target_observations(obs)
     poses0 = poses_for_central_camera(camera, tobs)
+    data = make_data(tobs)
     fit = least_squares(
         camera_residuals,
         SystemParams(camera, poses0),
-        make_data(tobs),
+        data,
         freeze=("camera",),
         max_steps=100,
         throw=False,
@@ -214,7 +222,9 @@ def initial_table_target(camera, obs: Observations, *, min_corners: int = 6) -> 
     steps = np.asarray(t.table_steps, dtype=np.float64)
     d, C, step = axis_from_poses(R, np.asarray(poses.translation), steps, dw)
     stage = stage_from_axis(d, C, dw)
-    rms = float(np.sqrt(2.0 * fit.cost / max(fit.n_observations, 1))) * 0.03
+    rms = float(np.sqrt(2.0 * fit.cost / max(fit.n_observations, 1))) * float(
+        data.sigma_corner_px
+    )  # the residuals are in units of σ_corner
     return TableTargetInit(
         stage, mean_table_pose(stage, poses, steps), poses, math.degrees(step), rms
     )

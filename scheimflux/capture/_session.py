@@ -94,34 +94,25 @@ def detect_session(
         preview_dir=preview_dir,
         on_view=lambda k, m: say(m),
     )
-    extra = []
-    if report.ignored:
-        shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
-        extra.append(f"ignored {len(report.ignored)} file(s) not named like a capture: {shown}")
-    for m in extra:
+
+    def note(m: str) -> None:  # kept in the report and said as it happens
         report.notes.append(m)
         say(m)
+
+    if report.ignored:
+        shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
+        note(f"ignored {len(report.ignored)} file(s) not named like a capture: {shown}")
     if scan is not None:
-
-        def frame_note(m: str) -> None:
-            report.notes.append(m)
-            say(m)
-
         stage = extract_scan(
             scan,
             delta_omega_deg,
             gauge_radius_mm,
             stripe_width_px=stripe_width_px,
             shape=(obs.height, obs.width),
-            on_frame=frame_note,
+            on_frame=note,
         )
         obs = dataclasses.replace(obs, stage=stage)
     if stage_target is not None:
-
-        def step_note(m: str) -> None:
-            report.notes.append(m)
-            say(m)
-
         views = detect_stage_target(
             stage_target,
             target if stage_target_board is None else stage_target_board,
@@ -131,11 +122,12 @@ def detect_session(
             margin_px=margin_px,
             min_points=min_points,
             mirrored=mirrored,
-            on_step=step_note,
+            on_step=note,
         )
         obs = dataclasses.replace(obs, stage_target=views)
     if obs.pixel_pitch_mm is None:
-        m = "no pixel pitch given (--pixel-pitch-mm): none recorded; the thick-lens model needs it"
-        report.notes.append(m)
-        say(m)
+        note(
+            "no pixel pitch given (--pixel-pitch-mm): none recorded; the thick-lens model "
+            "needs it"
+        )
     return obs, report

@@ -60,17 +60,22 @@ class GroupCovariance:
 
 
 def _group_sizes(cal, params) -> list[int]:
+    """Residuals per group, from the blocks' shapes (`jax.eval_shape`: traced, not run)."""
+    import jax
+
     from ..calibrate._model import corner_residuals, gauge_residuals, stripe_residuals
 
-    sizes = [int(np.size(corner_residuals(params, cal.data))),
-             int(np.size(stripe_residuals(params, cal.data)))]
+    def size(fn):
+        return int(np.prod(jax.eval_shape(fn, params, cal.data).shape))
+
+    sizes = [size(corner_residuals), size(stripe_residuals)]
     if params.stage is not None:
-        sizes.append(int(np.size(gauge_residuals(params, cal.data))))
+        sizes.append(size(gauge_residuals))
     if getattr(params, "table_pose", None) is not None:
         from ..calibrate._stage_table import table_stripe_residuals, table_target_residuals
 
-        n_s = int(np.size(table_stripe_residuals(params, cal.data)))
-        sizes += [int(np.size(table_target_residuals(params, cal.data))) - n_s, n_s]
+        n_s = size(table_stripe_residuals)
+        sizes += [size(table_target_residuals) - n_s, n_s]
     return sizes
 
 
