@@ -74,7 +74,9 @@ from ._scenes import (
 from ._stage_target import (
     StageTargetScan as StageTargetScan,
     lying_target_pose as lying_target_pose,
+    stage_target_lines as stage_target_lines,
     stage_target_scan as stage_target_scan,
+    write_stage_target_images as write_stage_target_images,
 )
 from ._trace import (
     Surfaces as Surfaces,

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import time
 from numbers import Integral, Real
 
 import numpy as np
@@ -29,6 +31,8 @@ from ..targets._target import Target
 from ._rig import Rig
 from ._scenes import (
     BoardView,
+    StripeProfile,
+    _board_stripe_points,
     _field,
     _inside,
     _near_field,
@@ -37,10 +41,17 @@ from ._scenes import (
     _rng,
     _rodrigues,
     _rot_z,
+    _trace_stripes,
     trace_points,
 )
 
-__all__ = ["StageTargetScan", "lying_target_pose", "stage_target_scan"]
+__all__ = [
+    "StageTargetScan",
+    "lying_target_pose",
+    "stage_target_lines",
+    "stage_target_scan",
+    "write_stage_target_images",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,7 +86,9 @@ def _axis_frame(stage: RotaryStage) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(stage.R_m_c, dtype=np.float64), np.asarray(stage.t_m_c, dtype=np.float64)
 
 
-def lying_target_pose(rig: Rig, stage: RotaryStage, board: Target, *, offset_mm=(0.0, 0.0)):
+def lying_target_pose(
+    rig: Rig, stage: RotaryStage, board: Target, *, offset_mm=(0.0, 0.0), face_camera=True
+):
     """The table pose of a board lying flat on the table, centred on the axis.
 
     The board's plane is perpendicular to the table axis at the height of the focus
@@ -83,12 +96,22 @@ def lying_target_pose(rig: Rig, stage: RotaryStage, board: Target, *, offset_mm=
     plus `offset_mm` (table x, y). A board this way covers the field at every table angle
     when it reaches beyond the field's distance from the axis — check `visible`.
 
+    `face_camera`: the printed side towards the camera (the board's +z, into the board,
+    points away from it), as a board lying on a table is seen; False puts the board's +z
+    along the table's +z whichever way the camera looks (a pattern seen from the back is
+    mirrored: a ChArUco board is then not found, a checkerboard is, its corners numbered
+    the other way round, as through a glass target).
+
     **Returns:** the [`Pose`][] `T_t_b` (board → table).
     """
     R_m_c, t_m_c = _axis_frame(stage)
     F0_m = R_m_c @ _field(rig).F0 + t_m_c
     centre = np.array([float(offset_mm[0]), float(offset_mm[1]), F0_m[2]])
-    return Pose.from_matrix(np.eye(3), centre - np.asarray(board.centre_mm, dtype=np.float64))
+    # the board's +z in the camera frame is ±R_m_c[2] (table rotations keep z_m): its
+    # camera z component R_m_c[2, 2] must be positive for the front to face the camera
+    flip = face_camera and R_m_c[2, 2] < 0.0
+    R = np.diag([1.0, -1.0, -1.0]) if flip else np.eye(3)
+    return Pose.from_matrix(R, centre - R @ np.asarray(board.centre_mm, dtype=np.float64))
 
 
 def _small_rotations(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
@@ -176,3 +199,82 @@ def stage_target_scan(
         t_k = R_m_c.T @ (_rot_z(i * dw).T @ (W[k] @ t_t_b + eps[k]) - t_m_c)
         views.append(BoardView(Pose.from_matrix(R_k, t_k), X[k], vis[k], uv[k], noisy[k]))
     return StageTargetScan(stage, board, T_t_b, idx, views, W, eps)
+
+
+def stage_target_lines(
+    rig: Rig, scan: StageTargetScan, *, step_px: Real = 2.0, noise_px: Real = 0.0,
+    seed: Integral = 0, margin_px: Real = 5.0,
+) -> list[StripeProfile]:  # fmt: skip
+    """The laser line on the table target at each step: laser plane ∩ target plane,
+    within the target's squares, ray-traced (as [`stripe_on_board`][] for a board view).
+
+    **Returns:** one [`StripeProfile`][] per view of `scan` (exact 3-D points, noise-free
+    pixels `px_true` and pixels `px` with Gaussian noise `noise_px`).
+    """
+    field = _field(rig)
+    sets = [_board_stripe_points(rig, field, v.T_c_b, scan.board, float(step_px))
+            for v in scan.views]  # fmt: skip
+    return _trace_stripes(rig, sets, float(noise_px), int(seed), float(margin_px))
+
+
+def write_stage_target_images(
+    out_dir: str | os.PathLike,
+    rig: Rig,
+    scan: StageTargetScan,
+    *,
+    laser_off: bool = True,
+    ext: str = "png",
+    ambient_level: float = 0.55,
+    laser_peak: float = 0.6,
+    stripe_width_px: float = 5.0,
+    noise_sigma: float = 0.004,
+    blur_sigma_px: float = 0.8,
+    seed: Integral = 0,
+    verbose: bool = False,
+) -> list[str]:
+    """Render the table-target folder of `detect --stage-target` (docs/stage.md):
+    `step_<k>.<ext>`, the target at table step k with the laser line on it (one grey
+    image, `albedo × (ambient + laser)` as `write_scene_images`' single layout), and with
+    `laser_off` beside it `step_<k>_off.<ext>`, the same step with the laser off.
+
+    The target (checkerboard, ChArUco board or circle grid) is rendered through the ray
+    tracer in each view's true pose (wobble and runout included); the line's exact
+    centres are [`stage_target_lines`][] (noise-free). Every image gets its own noise
+    stream from `seed`. Existing files are replaced.
+
+    **Returns:** the paths written, in step order (each step before its laser-off image).
+    """
+    from ._images import _EXTS, _board_to_pixel, _quantise, _stripe_image, _write
+    from ._render_target import render_target
+
+    ext = str(ext).lower().lstrip(".")
+    if ext not in _EXTS:
+        raise ValueError(f"ext must be one of {', '.join(_EXTS)}, got {ext!r}")
+    out = os.fspath(out_dir)
+    os.makedirs(out, exist_ok=True)
+    w, h = (int(s) for s in rig.sensor_size)
+    lines = stage_target_lines(rig, scan)
+    written = []
+    for k, (view, line) in enumerate(zip(scan.views, lines)):
+        t0 = time.perf_counter()
+        s = int(seed) * 100003 + 2 * k
+        albedo = render_target(
+            scan.board, _board_to_pixel(rig, view.T_c_b), shape=(h, w),
+            blur_sigma_px=float(blur_sigma_px), bit_depth=16,
+        ) / 65535.0  # fmt: skip
+        laser = _stripe_image(
+            (h, w), line.px_true, width_px=float(stripe_width_px), peak=1.0, ambient=0.0,
+            noise_sigma=0.0, saturate=False, bit_depth=8, seed=s,
+        ) / 255.0  # fmt: skip
+        lit = albedo * float(ambient_level)
+        jobs = [(f"step_{k}.{ext}", lit + albedo * float(laser_peak) * laser, s)]
+        if laser_off:
+            jobs.append((f"step_{k}_off.{ext}", lit, s + 1))
+        for name, img, si in jobs:
+            rng = np.random.default_rng(si)
+            path = os.path.join(out, name)
+            _write(path, _quantise(img + rng.normal(0, noise_sigma, img.shape), 8), ext, 95)
+            written.append(path)
+        if verbose:
+            print(f"  step {k}: {time.perf_counter() - t0:.2f} s")
+    return written
