@@ -20,7 +20,13 @@ from ._gates import REJECT_SIGMA, screen_observations
 from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
 from ._quality import _gated
-from ._rejection import _left_out_indices, _outliers, _rejection_passes, _without
+from ._rejection import (
+    _left_out_indices,
+    _outliers,
+    _rejection_passes,
+    _without,
+    outlier_counts,
+)
 from ._result import Calibration
 from ._solve import least_squares
 from ._stage import _gauge_rms, calibrate_stage
@@ -177,12 +183,7 @@ def calibrate(
             params, data = fit.params, _without(data, applied)
             fits["joint"] = fit
             left_out = _left_out_indices(applied)
-        outliers.update(
-            corner_outliers=int(applied[0].sum()),
-            stripe_outliers=int(applied[1].sum()),
-            gauge_outliers=int(applied[2].sum()),
-            rejection_passes=passes,
-        )
+        outliers.update(outlier_counts(applied), rejection_passes=passes)
     cal = Calibration(
         params=params,
         model=model,

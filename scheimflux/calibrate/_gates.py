@@ -74,7 +74,8 @@ class Quality:
     - `gates`: every [`Gate`][] checked.
     - `rejected`: counts of left-out observations: `corners_outside_sensor`,
       `stripe_outside_sensor`, `gauge_outside_sensor` (before the solve),
-      `corner_outliers`, `stripe_outliers`, `gauge_outliers` (rejection pass), and the
+      `corner_outliers`, `stripe_outliers`, `gauge_outliers` (rejection pass; with a
+      table target also `table_corner_outliers`, `table_stripe_outliers`), and the
       pass's `threshold_sigma`.
     - `warnings`: one-line notes that do not fail the calibration.
     - `plane`: the laser plane's conditioning ([`plane_conditioning`][]), or None.
@@ -118,7 +119,13 @@ class Quality:
             f"{r.get('stripe_outside_sensor', 0)} stripe and "
             f"{r.get('gauge_outside_sensor', 0)} gauge pixels; {beyond} "
             f"{r.get('corner_outliers', 0)} corners, {r.get('stripe_outliers', 0)} stripe "
-            f"and {r.get('gauge_outliers', 0)} gauge points",
+            f"and {r.get('gauge_outliers', 0)} gauge points"
+            + (
+                f"; on the table target {r['table_corner_outliers']} corners and "
+                f"{r.get('table_stripe_outliers', 0)} laser-line points"
+                if "table_corner_outliers" in r
+                else ""
+            ),
         ]
         lines.extend(f"  warning: {w}" for w in self.warnings)
         return "\n".join(lines)

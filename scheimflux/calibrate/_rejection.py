@@ -1,5 +1,10 @@
 """The rejection pass after the joint solve: which observations lie beyond a robust
-threshold, re-solving without them, and the record of what was left out."""
+threshold, re-solving without them, and the record of what was left out.
+
+Blocks screened: the board corners, the board stripes, the gauge scan and, with a target
+on the rotary table, the table target's corners and the laser line on it. Each block is
+screened on its own robust scale (never below its stated σ): a table that wobbles fits
+its target worse than the boards fit theirs, and that misfit is not an outlier."""
 
 from __future__ import annotations
 
@@ -11,9 +16,21 @@ from ._camera import _corner_errors
 from ._gates import outlier_masks
 from ._model import CalibrationData
 from ._plane import _laser_residuals_jit
-from ._solve import least_squares
+from ._solve import ONE_SHOT, least_squares
+from ._stage_table import table_stripe_residuals, table_target_errors_px
 
-LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge")
+# run once per rejection pass: compiled as the other one-shot programs
+_table_errors_jit = eqx.filter_jit(table_target_errors_px, compiler_options=ONE_SHOT)
+_table_stripe_jit = eqx.filter_jit(table_stripe_residuals, compiler_options=ONE_SHOT)
+
+LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge", "table_corners", "table_stripe")
+
+
+def _weights(data: CalibrationData) -> tuple:
+    """The weight arrays of the blocks of `data`, in `LEFT_OUT_BLOCKS` order (the table
+    target's two only when the data hold one)."""
+    w = (data.corner_w, data.stripe_w, data.gauge_w)
+    return w if data.table is None else w + (data.table.w, data.table.stripe_w)
 
 
 def _left_out_indices(masks) -> dict:
@@ -24,8 +41,12 @@ def _left_out_indices(masks) -> dict:
 def apply_left_out(data: CalibrationData, left_out: dict) -> CalibrationData:
     """`data` with the observations of `left_out` (see `Calibration.left_out`) at weight
     0; `ValueError` when an index does not fit the data."""
+    weights = _weights(data)
+    for k in LEFT_OUT_BLOCKS[len(weights):]:
+        if len(np.asarray(left_out.get(k, ()))):
+            raise ValueError(f"left-out {k} given but the observations hold no table target")
     masks = []
-    for k, w in zip(LEFT_OUT_BLOCKS, (data.corner_w, data.stripe_w, data.gauge_w)):
+    for k, w in zip(LEFT_OUT_BLOCKS, weights):
         m = np.zeros(w.shape, bool)
         idx = np.asarray(left_out.get(k, ()), dtype=int).reshape(-1, 2)
         if len(idx) and (np.any(idx < 0) or np.any(idx >= np.array(w.shape))):
@@ -40,15 +61,14 @@ MAX_REJECTION_PASSES = 3
 
 
 def _without(data: CalibrationData, masks) -> CalibrationData:
-    """`data` with the observations under `masks` (True: left out) at weight 0."""
-    return eqx.tree_at(
-        lambda d: (d.corner_w, d.stripe_w, d.gauge_w),
-        data,
-        tuple(
-            jnp.where(jnp.asarray(m), 0.0, w)
-            for m, w in zip(masks, (data.corner_w, data.stripe_w, data.gauge_w))
-        ),
-    )
+    """`data` with the observations under `masks` (True: left out) at weight 0 (masks in
+    `LEFT_OUT_BLOCKS` order; the table target's two apply where the data hold one)."""
+    masks = tuple(masks)
+    new = tuple(jnp.where(jnp.asarray(m), 0.0, w) for m, w in zip(masks, _weights(data)))
+    out = eqx.tree_at(lambda d: (d.corner_w, d.stripe_w, d.gauge_w), data, new[:3])
+    if len(new) > 3:
+        out = eqx.tree_at(lambda d: (d.table.w, d.table.stripe_w), out, new[3:5])
+    return out
 
 
 def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw):
@@ -105,7 +125,41 @@ def _block_residuals(params, data):
     return err, stripe, gauge
 
 
+def _table_residuals(params, data):
+    """The table target's corner errors `(F, M, 2)` px and the plain residuals `(F, K)`
+    of the laser line on it (units of their σ)."""
+    err = np.asarray(_table_errors_jit(params, data))
+    stripe = np.asarray(_table_stripe_jit(params, data)).reshape(data.table.stripe_w.shape)
+    return err, _unrobust(stripe, data.robust)
+
+
 def _outliers(params, data, threshold: float):
+    """Rejection masks (True: out) in `LEFT_OUT_BLOCKS` order: board corners, board
+    stripes, gauge and, where the data hold a table target (and the parameters its pose),
+    its corners and its laser line, each block on its own robust scale."""
+    masks = _board_outliers(params, data, threshold)
+    if data.table is None or params.table_pose is None:
+        return masks
+    err, stripe = _table_residuals(params, data)
+    t_corners, t_stripe, _ = outlier_masks(
+        err,
+        np.asarray(data.table.w),
+        stripe,
+        np.asarray(data.table.stripe_w),
+        threshold=threshold,
+        corner_sigma=float(data.sigma_corner_px),
+        sigma=1.0,
+    )
+    return masks + (t_corners, t_stripe)
+
+
+def outlier_counts(masks) -> dict:
+    """`{"corner_outliers": n, ...}` of rejection masks (the table target's where given)."""
+    names = ("corner", "stripe", "gauge", "table_corner", "table_stripe")
+    return {f"{k}_outliers": int(np.asarray(m).sum()) for k, m in zip(names, masks)}
+
+
+def _board_outliers(params, data, threshold: float):
     err, stripe, gauge = _block_residuals(params, data)
     return outlier_masks(
         err,
