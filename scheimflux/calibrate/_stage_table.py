@@ -72,6 +72,7 @@ def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
     uv = np.where(ok[..., None], uv, np.asarray(centre, dtype=np.float64))
     sets = list(target.stripe_px) or [np.zeros((0, 2))] * len(uv)
     stripe, stripe_w = _pad(sets, np.asarray(centre, dtype=np.float64))
+
     def put(a):  # no device program per shape (as `make_data`)
         return jax.device_put(np.asarray(a, dtype=np.float64))
 
@@ -272,3 +273,135 @@ def table_target_start(camera, obs: Observations, stage=None, ecc=None):
         return init.stage, jnp.zeros(2), init.table_pose
     steps = np.asarray(obs.stage_target.table_steps, dtype=np.float64)
     return stage, ecc, mean_table_pose(stage, init.view_poses, steps)
+
+
+# ----------------------------------------------------------------------------- uncertainty
+
+
+def _table_block(params, data):
+    """The table block's residuals alone (a module-level function: one compiled Jacobian)."""
+    return table_target_residuals(params, data)
+
+
+def _table_block_moved(q, params, data):
+    """The table block's residuals (as `table_target_residuals`, no Huber) when the
+    target at step i is moved by a small rotation `(q_i0, q_i1, 0)` and a translation
+    `(q_i2, q_i3, 0)` in table coordinates, `X_t → X_t + ω × X_t + ε` (the wobble and
+    runout of the simulator, `simulate._stage_target`); `q` `(F, 4)`."""
+    from ._model import laser_points
+
+    t, st, T = data.table, params.stage, params.table_pose
+    z = jnp.zeros(q.shape[:1])
+    om = jnp.stack([q[:, 0], q[:, 1], z], axis=1)
+    eps = jnp.stack([q[:, 2], q[:, 3], z], axis=1)
+
+    def corners(step, uv_obs, w, om, eps):
+        X_t = T.apply(t.board)
+        X_t = X_t + jnp.cross(om, X_t) + eps
+        X = (X_t @ st.frame_rotation(step) - st.t_m_c) @ st.R_m_c
+        uv, _ = jax.vmap(params.camera.project_one)(X)
+        return (uv - uv_obs) * w[:, None]
+
+    (X,) = laser_points(params.camera, params.plane, t.stripe)
+
+    def line(step, X, w, om, eps):
+        Ri = st.frame_rotation(step)
+        n_t = T.R[:, 2] + jnp.cross(om, T.R[:, 2])
+        o_t = T.translation + jnp.cross(om, T.translation) + eps
+        n_c = st.R_m_c.T @ (Ri.T @ n_t)
+        o_c = st.R_m_c.T @ (Ri.T @ o_t - st.t_m_c)
+        return (X @ n_c - jnp.dot(n_c, o_c)) * w
+
+    rc = jax.vmap(corners)(t.steps, t.corners, t.w, om, eps).reshape(-1) / data.sigma_corner_px
+    rs = jax.vmap(line)(t.steps, X, t.stripe_w, om, eps).reshape(-1) / data.sigma_stripe_mm
+    return jnp.concatenate([rc, rs])
+
+
+@eqx.filter_jit
+def _motion_jacobian(params, data):
+    """`∂r_t / ∂q` `(n_t, F, 4)` of [`_table_block_moved`][] at q = 0."""
+    q0 = jnp.zeros((data.table.steps.shape[0], 4))
+    return jax.jacfwd(_table_block_moved)(q0, params, data)
+
+
+def table_block_covariance(fit, data) -> np.ndarray | None:
+    """Covariance of a joint solve's free parameters when the table wobbles and runs out.
+
+    The pooled factor `s² = |r|² / (n − p)` (`_stage_warning._fit_covariance`) charges
+    every block with the worst one's misfit. A table that wobbles or runs out fits its
+    target worse than the boards fit theirs (0.14 against 0.03 px for 0.02 mrad and
+    0.5 µm per step), and the pooled factor scaled the boards' share of the axis and
+    length σ up with it (3.5 µm across half a turn predicted against ≈ 1.3 µm of
+    spread). That misfit is not white noise: at each step the whole target moves
+    rigidly. So it is modelled as what it is, a random motion per step, `X_t → X_t +
+    ω_i × X_t + ε_i` (ω_i ⊥ z: wobble; ε_i in the table plane: runout), of variances
+    estimated from the residuals:
+
+    - `A = ∂r_t/∂q` (F × 4 motion components); `q̂ = argmin |r_t − A q|` per step; the
+      motions' 4 × 4 covariance `C` from the F estimates q̂ ([`_motion_covariance`][]:
+      the solve absorbed their mean into the axis, and the pixel noise's part is taken
+      off);
+    - the white factors `s_t² = |r_t − A q̂|² / (n_t − 4F)` of the table block and
+      `s_o² = |r_o|² / (n_o − p)` of the rest (boards, their stripes, a gauge), each ≥ 1;
+    - `Σ = H⁻¹ (s_o² H_o + s_t² H_t + K C Kᵀ) H⁻¹`, `H = H_o + H_t = JᵀJ`, `K = J_tᵀ A`,
+      `C` per step: the estimate's first-order response to the motions, whose mean over
+      the steps moves the fitted axis.
+
+    The motions count only where they explain the table block's misfit beyond its pixel
+    noise (an F test at 0.1 %); without wobble or runout Σ is the pooled covariance (all
+    factors ≈ 1, C = 0).
+    **Returns:** `(p, p)` in the order of `split(params, spec)`, or None without a kept
+    normal matrix or a table block.
+    """
+    from ._solve import jacobian
+
+    H = getattr(fit, "normal_matrix", None)
+    if H is None or getattr(data, "table", None) is None or fit.params.table_pose is None:
+        return None
+    H = np.asarray(H, dtype=np.float64)
+    J_t = np.asarray(jacobian(_table_block, fit.params, data, fit.free_mask), dtype=np.float64)
+    A3 = np.asarray(_motion_jacobian(fit.params, data), dtype=np.float64)
+    n_rows, F = A3.shape[0], A3.shape[1]
+    A = A3.reshape(n_rows, 4 * F)
+    r = np.asarray(fit.residuals, dtype=np.float64)
+    k = len(r) - J_t.shape[0]  # the table block is the joint residuals' last
+    r_t, r_o = r[k:], r[:k]
+    # counted as `Fit.n_observations`: the rows with non-zero residual (weight 0 gives 0)
+    n_t, n_o, p = np.count_nonzero(r_t), np.count_nonzero(r_o), H.shape[0]
+    G = A.T @ A  # block diagonal: one 4 × 4 block per step
+    Ginv = np.linalg.pinv(G)
+    q = Ginv @ (A.T @ r_t)
+    e = r_t - A @ q
+    s2_t = max(1.0, float(e @ e) / (n_t - 4 * F)) if n_t > 4 * F else 1.0
+    s2_o = max(1.0, float(r_o @ r_o) / (n_o - p)) if n_o > p else 1.0
+    # the motions enter only where they explain the misfit beyond the pixel noise (F test
+    # at 0.1 %: without wobble or runout, C = 0 and Σ is the pooled covariance)
+    from scipy.stats import f as f_dist
+
+    dof = n_t - 4 * F
+    moved = dof > 0 and (float(r_t @ r_t) - float(e @ e)) / (4 * F) > f_dist.ppf(
+        0.999, 4 * F, dof
+    ) * max(float(e @ e) / dof, 1e-300)
+    C = _motion_covariance(q.reshape(F, 4), s2_t * Ginv) if moved else np.zeros((4, 4))
+    K = J_t.T @ A
+    H_t = J_t.T @ J_t
+    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+    Hinv = d[:, None] * np.linalg.pinv(H * np.outer(d, d)) * d[None, :]
+    KC = sum(K[:, 4 * i : 4 * i + 4] @ C @ K[:, 4 * i : 4 * i + 4].T for i in range(F))
+    meat = s2_o * (H - H_t) + s2_t * H_t + KC
+    return Hinv @ meat @ Hinv
+
+
+def _motion_covariance(q: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """The 4 × 4 covariance of the per-step motions from their estimates `q` `(F, 4)`:
+    `Σ q_i q_iᵀ / (F − 1)` (the solve absorbed their mean into the axis) less the mean
+    of the estimates' own noise covariance (the 4 × 4 diagonal blocks of `noise`),
+    clipped to positive semi-definite. Full, not diagonal: in the fitted table frame a
+    wobble about a point elsewhere on the axis shows as a runout too, so the two
+    correlate (the origin on the axis is the stage's gauge, not the table's pivot)."""
+    F = q.shape[0]
+    S = q.T @ q / max(F - 1, 1)
+    N = np.mean([noise[4 * i : 4 * i + 4, 4 * i : 4 * i + 4] for i in range(F)], axis=0)
+    w, V = np.linalg.eigh(0.5 * ((S - N) + (S - N).T))
+    return (V * np.clip(w, 0.0, None)) @ V.T

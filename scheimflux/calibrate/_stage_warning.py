@@ -230,10 +230,18 @@ def calibration_axis_conditioning(cal) -> AxisConditioning | None:
     fit = fits.get("joint", fits.get("stage"))
     if getattr(getattr(fit, "params", None), "stage", None) is None:
         return None
-    cov = _fit_covariance(fit)
+    data = getattr(cal, "data", None)
+    cov = None
+    if isinstance(data, CalibrationData) and data.table is not None:
+        from ._stage_table import table_block_covariance
+
+        # a table target: its own variance factor (a wobbling table's misfit would
+        # otherwise scale the boards' share of the σ up with it)
+        cov = table_block_covariance(fit, data)
+    if cov is None:
+        cov = _fit_covariance(fit)
     if cov is None:
         return None
-    data = getattr(cal, "data", None)
     W, H = getattr(cal, "sensor_size", (0, 0))
     if not (W and H):
         return None
