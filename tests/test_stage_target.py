@@ -207,3 +207,27 @@ def test_start_refuses_wrong_order_and_wrong_step(rig, scan):
     few = type(few)(30.0, few.board_points_mm, few.table_steps, corners)
     with pytest.raises(ValueError, match=r"table steps \[4\] have fewer than 6"):
         initial_table_target(cam, _obs(rig, few))
+
+
+def test_motion_covariance_recovers_the_drawn_covariance():
+    """`_motion_covariance` (the table's per-step wobble and runout, `table_block_
+    covariance`): from estimates q_i = motion_i + estimation noise, drawn with a known
+    correlated 4 × 4 covariance C and a known noise covariance N, it returns C (not C + N),
+    positive semi-definite; pure noise gives ≈ 0, never a negative variance."""
+    from scheimflux.calibrate._stage_table import _motion_covariance
+
+    rng = np.random.default_rng(7)
+    L = np.array([[2.0, 0, 0, 0], [0.5, 1.5, 0, 0], [1.8, 0.2, 0.6, 0], [0, -1.0, 0, 0.8]])
+    C = L @ L.T
+    F, s_n = 4000, 0.7
+    q = rng.normal(size=(F, 4)) @ L.T + rng.normal(0, s_n, (F, 4))
+    N = np.broadcast_to(s_n**2 * np.eye(4), (F, 4, 4))
+    got = _motion_covariance(q, N)
+    # a covariance from F draws: each entry to ≈ sqrt(2 / F) of the scale (≈ 2 %); 10 %
+    # of the largest variance is > 4 such σ
+    np.testing.assert_allclose(got, C, atol=0.1 * np.diag(C).max())
+    assert np.linalg.eigvalsh(got).min() >= -1e-12
+    pure = _motion_covariance(rng.normal(0, s_n, (12, 4)), N[:12])
+    assert np.linalg.eigvalsh(pure).min() >= -1e-12
+    # 12 noise draws: what is left is a sampling fluctuation of N (≲ N), not N itself
+    assert np.trace(pure) < np.trace(s_n**2 * np.eye(4))

@@ -382,7 +382,8 @@ def table_block_covariance(fit, data) -> np.ndarray | None:
     moved = dof > 0 and (float(r_t @ r_t) - float(e @ e)) / (4 * F) > f_dist.ppf(
         0.999, 4 * F, dof
     ) * max(float(e @ e) / dof, 1e-300)
-    C = _motion_covariance(q.reshape(F, 4), s2_t * Ginv) if moved else np.zeros((4, 4))
+    blocks = np.stack([Ginv[4 * i : 4 * i + 4, 4 * i : 4 * i + 4] for i in range(F)])
+    C = _motion_covariance(q.reshape(F, 4), s2_t * blocks) if moved else np.zeros((4, 4))
     K = J_t.T @ A
     H_t = J_t.T @ J_t
     d = np.sqrt(np.clip(np.diag(H), 0.0, None))
@@ -396,12 +397,12 @@ def table_block_covariance(fit, data) -> np.ndarray | None:
 def _motion_covariance(q: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """The 4 × 4 covariance of the per-step motions from their estimates `q` `(F, 4)`:
     `Σ q_i q_iᵀ / (F − 1)` (the solve absorbed their mean into the axis) less the mean
-    of the estimates' own noise covariance (the 4 × 4 diagonal blocks of `noise`),
+    of the estimates' own noise covariances `noise` `(F, 4, 4)`,
     clipped to positive semi-definite. Full, not diagonal: in the fitted table frame a
     wobble about a point elsewhere on the axis shows as a runout too, so the two
     correlate (the origin on the axis is the stage's gauge, not the table's pivot)."""
     F = q.shape[0]
     S = q.T @ q / max(F - 1, 1)
-    N = np.mean([noise[4 * i : 4 * i + 4, 4 * i : 4 * i + 4] for i in range(F)], axis=0)
+    N = np.mean(np.asarray(noise, dtype=np.float64).reshape(-1, 4, 4), axis=0)
     w, V = np.linalg.eigh(0.5 * ((S - N) + (S - N).T))
     return (V * np.clip(w, 0.0, None)) @ V.T
