@@ -231,3 +231,30 @@ def test_motion_covariance_recovers_the_drawn_covariance():
     assert np.linalg.eigvalsh(pure).min() >= -1e-12
     # 12 noise draws: what is left is a sampling fluctuation of N (≲ N), not N itself
     assert np.trace(pure) < np.trace(s_n**2 * np.eye(4))
+
+
+def test_left_out_table_observations_are_re_applied(rig, scan):
+    """`diagnostics.left_out`'s table-target entries (`table_corners`, `table_stripe`:
+    `[step row, index]`) zero exactly those weights when a calibration file is read with
+    its observations; an index beyond the data and table entries for observations without
+    a table target are refused in one line."""
+    import dataclasses
+
+    from scheimflux.calibrate._model import make_data
+    from scheimflux.calibrate._rejection import apply_left_out
+    from scheimflux.io import View
+
+    def obs(target):  # one placeholder board view: the weights need only the shapes
+        uv = np.array([[100.0, 100.0], [200.0, 100.0], [100.0, 200.0], [200.0, 200.0]])
+        return dataclasses.replace(_obs(rig, target), views=[View(uv, np.zeros((0, 2)))])
+
+    data = make_data(obs(_target_views(scan)))
+    seen = np.argwhere(np.asarray(data.table.w) > 0)
+    out = apply_left_out(data, {"table_corners": seen[[0, 7]].tolist()})
+    w0, w1 = np.asarray(data.table.w), np.asarray(out.table.w)
+    assert w1.sum() == w0.sum() - 2 and w1[tuple(seen[0])] == 0 and w1[tuple(seen[7])] == 0
+    with pytest.raises(ValueError, match="left-out table_corners index out of range"):
+        apply_left_out(data, {"table_corners": [[99, 0]]})
+    bare = make_data(obs(None))
+    with pytest.raises(ValueError, match="observations hold no table target"):
+        apply_left_out(bare, {"table_stripe": [[0, 0]]})
