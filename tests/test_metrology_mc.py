@@ -124,6 +124,10 @@ def test_step_and_cylinder_uncertainty_vs_monte_carlo_of_re_calibrations():
         record("bearing radius", measure_stripes(
             cal, px, Cylinder(), frame="measurement", frame_index=cfi, sigma_px=SIGMA_STRIPE,
             diag=d, calibration_covariance=gc), scan.radius)
+        # one line per repeat (pytest -s): error and u (µm) of each value so far
+        print(f"repeat {len(out['step 1 mm'][0])}: " + "; ".join(
+            f"{k} {v[0][-1] * 1e3:+.4f} ± {2 * v[1][-1] * 1e3:.4f}" for k, v in out.items()),
+            flush=True)
     for name, (err, u_all, u_rand) in out.items():
         _check_against_truth(name, np.asarray(err), np.asarray(u_all), np.asarray(u_rand))
 
