@@ -90,7 +90,8 @@ def test_step_and_cylinder_uncertainty_vs_monte_carlo_of_re_calibrations():
     step heights (camera frame) and a bearing radius (measurement frame) with
     `measure_stripes`. Runtime measured at load 11–20 on 2 cores: 568 s for the first
     repeat (compiles), 65–225 s for each further one (≈ 1 h for 30); 415 s for all 30 at
-    load 2–4 after the calibration programs shrank (docs/metrology.md)."""
+    load 2–4 after the calibration programs shrank; 2653 s at load 16–27 with a warm
+    compilation cache (docs/metrology.md)."""
     from scheimflux.calibrate import diagnostics
     from scheimflux.metrology import Cylinder, group_covariance
     from scheimflux.simulate import BEARING_RADII_MM, gauge_scan
