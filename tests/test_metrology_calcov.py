@@ -79,7 +79,7 @@ def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
     )
     cal = calibrate(obs, distortion="none")
     d = diagnostics(cal, block="joint")
-    gc = group_covariance(cal)
+    gc = group_covariance(cal, weighting="groups")
     assert list(gc.variance_factors) == ["corners", "stripes"]
     assert sum(gc.n_residuals.values()) == d.n_residuals
     red = np.array(list(gc.redundancy.values()))
@@ -103,14 +103,117 @@ def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
     from scheimflux.simulate import step_gauge
 
     prof = step_gauge(paper_rig(refine=False), (1.5,), step_px=6.0)[0]
+    gp = group_covariance(cal)  # the default: each residual's noise from its pixel
+    assert gp.weighting == "pixels" and list(gp.variance_factors) == ["corners", "stripes"]
+    # the corners' pixel noise estimate is the simulated one (0.03 px; a few hundred
+    # residuals know it to < 10 %; the undistorted model adds 0.007 px RMS, docs)
+    assert 0.8 < np.sqrt(gp.variance_factors["corners"]) / 0.03 < 1.25
     terms = {}
-    for how in ("groups", "pooled", gc):
+    for how in ("groups", "pooled", gp):
         m = measure_stripes(cal, prof.px_true, Steps(), labels=prof.labels, sigma_px=0.05,
                             diag=d, calibration_covariance=how, frozen_sigma=None)
         G = np.asarray(m.sensitivity["d_values"])[0]
         idx = [d.labels.index(lab) for lab in m.sensitivity["labels"]]
-        S = (d.covariance if isinstance(how, str) and how == "pooled" else gc.covariance)
+        S = (d.covariance if isinstance(how, str) and how == "pooled" else gp.covariance)
         np.testing.assert_allclose(m.budget["calibration"][0] ** 2,
                                    G @ S[np.ix_(idx, idx)] @ G, rtol=1e-9)
         terms[how if isinstance(how, str) else "given"] = m.budget["calibration"][0]
     assert terms["groups"] == terms["given"]
+
+
+def _heteroscedastic_problem():
+    """One group whose rows carry different noise (as board-stripe residuals do: a stripe
+    pixel's noise moves its point off the board by σ_px × sin of the angle between laser
+    plane and board, which differs from view to view), equally weighted by the solve.
+    Parameter 1 is determined by the noisier rows."""
+    rng = np.random.default_rng(6)
+    A0 = rng.standard_normal((150, 3))
+    quiet = np.c_[rng.standard_normal(300), 0.02 * rng.standard_normal((300, 2))]
+    loud = np.c_[0.02 * rng.standard_normal(100), rng.standard_normal((100, 2))]
+    J = np.vstack([A0, quiet, loud])
+    gain = np.r_[np.ones(150), np.full(300, 0.04), np.full(100, 1.0)]  # Var r_i = σ² a_i
+    return J, gain, (150, 400)
+
+
+def test_per_residual_gains_match_the_spread_where_one_factor_per_group_does_not():
+    J, gain, sizes = _heteroscedastic_problem()
+    rng = np.random.default_rng(7)
+    sig = 0.5  # the same pixel noise for both groups, unknown to the estimate
+    noise = sig * np.sqrt(gain)[None, :] * rng.standard_normal((DRAWS, len(gain)))
+    est = np.linalg.lstsq(J, noise.T, rcond=None)[0].T
+    resid = noise - est @ J.T
+    emp = np.diag(np.cov(est.T))
+    with_gains = np.mean(
+        [np.diag(sandwich_covariance(J, r, sizes, gains=gain)[0]) for r in resid[:300]], axis=0
+    )
+    per_group = np.mean(
+        [np.diag(sandwich_covariance(J, r, sizes)[0]) for r in resid[:300]], axis=0
+    )
+    # 3000 draws know a variance to 2.6 %, the mean of 300 sandwiches (each from > 100
+    # residuals per group) to < 1 %: 10 % is > 3 σ
+    np.testing.assert_allclose(with_gains, emp, rtol=0.10)
+    # one factor for the mixed group averages its quiet and loud rows: the parameters the
+    # loud rows determine come out too certain (measured: 0.68 of the spread's variance)
+    assert np.all(per_group[1:] < 0.8 * emp[1:])
+    # with gains, each group's factor is its pixel noise variance, σ² for both
+    f = np.mean([sandwich_covariance(J, r, sizes, gains=gain)[1] for r in resid[:300]], axis=0)
+    np.testing.assert_allclose(f, [sig**2, sig**2], rtol=0.05)
+
+
+def test_equal_gains_are_one_factor_per_group():
+    J, _, sizes = _problem()
+    r = np.random.default_rng(8).standard_normal(len(J))
+    ref = sandwich_covariance(J, r, sizes)
+    # one gain for all rows rescales the factors and nothing else (gains that differ
+    # between groups change the one-step factors slightly: the other groups' share of the
+    # redundancy is counted in pixel units)
+    got = sandwich_covariance(J, r, sizes, gains=np.full(len(J), 4.0))
+    np.testing.assert_allclose(got[0], ref[0], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(got[1], np.asarray(ref[1]) / 4.0, rtol=1e-10)
+    np.testing.assert_allclose(got[2], ref[2], rtol=1e-10)
+    with pytest.raises(ValueError, match="gains"):
+        sandwich_covariance(J, r, sizes, gains=-np.ones(len(J)))
+
+
+@pytest.mark.slow  # 120 s at load 16–17 on 2 cores (the residual function's compile)
+def test_pixel_noise_gains_are_each_residuals_own_pixel_derivative():
+    """On a ray-traced scene's corner and board-stripe residuals (no solve: the truth's
+    parameters): the two-JVP gains equal the row norms² of the dense Jacobian with respect
+    to every observed pixel, and no residual depends on more than one pixel. (The gauge
+    residuals' gains are checked by the Monte Carlo of re-calibrations: the gauge group's
+    estimated pixel noise is the simulated one, docs/metrology.md.)"""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from scheimflux.calibrate._model import SystemParams, camera_plane_residuals, make_data
+    from scheimflux.camera import ThickLensScheimpflug
+    from scheimflux.geometry import LaserPlane
+    from scheimflux.geometry._transforms import Pose
+    from scheimflux.metrology._calcov import pixel_noise_gains
+    from scheimflux.simulate import paper_rig, simulate_observations
+    from scheimflux.targets import Checkerboard
+
+    rig = paper_rig(refine=False)
+    obs, truth = simulate_observations(rig, Checkerboard(6, 5, 0.4), n_views=3,
+                                       stage_scan=False, seed=0)
+    data = make_data(obs, sigma_corner_px=0.03, sigma_stripe_mm=2e-3)
+    poses = Pose(jnp.stack([p.rotvec for p in truth.board_poses]),
+                 jnp.stack([p.translation for p in truth.board_poses]))
+    params = SystemParams(ThickLensScheimpflug(**truth.nominal_params), poses,
+                          LaserPlane(jnp.asarray(truth.laser_plane)))
+    a = pixel_noise_gains(camera_plane_residuals, params, data)
+    dense = np.zeros_like(a)
+    for name in ("corners", "stripe"):
+        Jp = jax.jacfwd(lambda x, name=name: camera_plane_residuals(
+            params, eqx.tree_at(lambda d: getattr(d, name), data, x)))(getattr(data, name))
+        Jp = np.asarray(Jp).reshape(len(a), -1, 2)
+        assert np.all(np.sum(np.any(Jp != 0, axis=2), axis=1) <= 1), name  # one pixel
+        dense += np.sum(Jp**2, axis=(1, 2))
+    n_corner = 2 * int(np.sum(np.asarray(data.corner_w)))
+    n_stripe = int(np.sum(np.asarray(data.stripe_w)))
+    assert np.count_nonzero(dense) == n_corner + n_stripe
+    # corners: r = (projection − pixel)/σ, so a = 1/σ² exactly
+    np.testing.assert_allclose(a[dense > 0][:n_corner], 1 / 0.03**2, rtol=1e-12)
+    # the same derivatives summed in another order: rounding only
+    np.testing.assert_allclose(a, dense, rtol=1e-10, atol=1e-12 * dense.max())

@@ -23,6 +23,17 @@ sandwich
 which reduces to `s² (JᵀJ)⁺` when all `s²_g` are equal. The pseudo-inverse uses the same
 column normalisation and cut-off as `diagnostics` (the gauge freedoms the solve fixes by
 holding parameters are not in `J`).
+
+Within a group the residuals' noise is not equal either: a board-stripe pixel's noise
+moves its residual by `|∂r_i/∂p_i|`, which depends on the angle between the laser plane
+and that view's board. By default (`weighting="pixels"`) each residual's variance is
+`σ²_g a_i`, `a_i = |∂r_i/∂p_i|²` from its own pixel ([`pixel_noise_gains`][]): `s²_g`
+is then the group's pixel noise σ²_g in px² (estimated from the residuals standardised
+by `a_i`), and the meat is `Σ_i σ²_g a_i J_iᵀJ_i`. On the Monte Carlo scene of
+docs/metrology.md the estimated σ_g are the simulated 0.030 / 0.050 / 0.050 px (corners /
+board stripes / gauge), and the measured values' calibration terms equal the equal-
+within-group ones to 1e-4 relative there (the steps and the radius do not depend on the
+views whose stripe residuals are noisier).
 """
 
 from __future__ import annotations
@@ -31,7 +42,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["GroupCovariance", "group_covariance", "sandwich_covariance"]
+__all__ = ["GroupCovariance", "group_covariance", "pixel_noise_gains", "sandwich_covariance"]
 
 # Residual blocks of the joint problems, in the order `joint_residuals` concatenates them.
 GROUPS = ("corners", "stripes", "gauge", "table target", "table stripes")
@@ -50,6 +61,8 @@ class GroupCovariance:
     - `variance_factors`: `{group: s²_g}`; `redundancy`: `{group: n_g − tr H_gg}`;
       `n_residuals`: `{group: n_g}`.
     - `pooled`: the single s² of `diagnostics`.
+    - `weighting`: `"pixels"` (`variance_factors` are pixel noise variances, px²) or
+      `"groups"` (relative to the σ the calibration assumed).
     """
 
     covariance: np.ndarray
@@ -57,6 +70,7 @@ class GroupCovariance:
     redundancy: dict
     n_residuals: dict
     pooled: float
+    weighting: str = "groups"
 
 
 def _group_sizes(cal, params) -> list[int]:
@@ -79,13 +93,19 @@ def _group_sizes(cal, params) -> list[int]:
     return sizes
 
 
-def group_covariance(cal, *, rtol: float | None = None) -> GroupCovariance:
+def group_covariance(
+    cal, *, rtol: float | None = None, weighting: str = "pixels"
+) -> GroupCovariance:
     """The joint calibration's parameter covariance with a variance factor per residual
     group (corners, board stripes, gauge scan): see the module text.
 
     **Arguments:**
     - `cal`: a `Calibration` with a laser plane (its data are kept in it).
     - `rtol`: singular-value cut-off of the pseudo-inverse (default: `diagnostics`').
+    - `weighting`: `"pixels"` (default): each residual's noise is its own pixel's noise
+      through the residual, `Var r_i = σ²_g |∂r_i/∂p_i|²` ([`pixel_noise_gains`][]), and
+      `variance_factors` are the groups' pixel noise variances σ²_g (px²); `"groups"`:
+      equal within each group (the factors are then relative to the assumed σ).
 
     **Returns:** a [`GroupCovariance`][]. **Raises:** `ValueError` (one line) for a
     calibration without laser plane or without redundancy.
@@ -103,25 +123,78 @@ def group_covariance(cal, *, rtol: float | None = None) -> GroupCovariance:
     sizes = _group_sizes(cal, params)
     if sum(sizes) != len(r):
         raise ValueError("the residual groups do not add up to the joint residual vector")
-    cov, factors, redund, counts, pooled = sandwich_covariance(J, r, sizes, rtol=rtol)
+    if weighting not in ("pixels", "groups"):
+        raise ValueError(f"weighting must be 'pixels' or 'groups', got {weighting!r}")
+    gains = pixel_noise_gains(fn, params, cal.data) if weighting == "pixels" else None
+    cov, factors, redund, counts, pooled = sandwich_covariance(
+        J, r, sizes, rtol=rtol, gains=gains
+    )
     names = GROUPS[: len(sizes)]
     return GroupCovariance(
         cov, dict(zip(names, factors)), dict(zip(names, redund)), dict(zip(names, counts)),
-        pooled,
+        pooled, weighting,
     )
 
 
-def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8):
+def pixel_noise_gains(fn, params, data) -> np.ndarray:
+    """`a_i = |∂r_i/∂p_i|²` `(n,)`: how much each residual moves per pixel of noise on the
+    one observed pixel `p_i` it depends on (px⁻² × the residual's unit²).
+
+    Every residual of the joint problems depends on the pixel of one observation only (a
+    corner's u or v, one stripe or gauge pixel), so `∂r/∂u` of all pixels at once (one
+    JVP with every u tangent set to 1) is each residual's own `∂r_i/∂u_i`, and likewise
+    for v: two forward passes, no `n × 2n` Jacobian.
+    """
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    getters = [lambda d: d.corners, lambda d: d.stripe, lambda d: d.gauge]
+    if getattr(data, "table", None) is not None:
+        getters += [lambda d: d.table.corners, lambda d: d.table.stripe]
+
+    def where(d):
+        return tuple(g(d) for g in getters)
+
+    @eqx.filter_jit
+    def gains(params, data):
+        prim = where(data)
+
+        def res(pix):
+            return fn(params, eqx.tree_at(where, data, pix))
+
+        out = jnp.zeros(())
+        for axis in (0, 1):
+            tan = tuple(jnp.zeros_like(p).at[..., axis].set(1.0) for p in prim)
+            out = out + jax.jvp(res, (prim,), (tan,))[1] ** 2
+        return out
+
+    return np.asarray(gains(params, data), dtype=np.float64)
+
+
+def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None):
     """`(Σ, s²_g list, redundancies, counts, pooled s²)` of a weighted least-squares
     optimum with Jacobian `J` `(n, p)` and residuals `r` `(n,)` whose rows come in
     consecutive groups of `sizes`, each group with its own variance factor (module text).
     Rows that are identically zero (padding) are not observations.
+
+    `gains` `(n,)` (optional): each residual's noise variance relative to the others of
+    its group, `Var r_i = s²_g a_i` (e.g. [`pixel_noise_gains`][]: then `s²_g` is the
+    group's pixel noise variance, px²). Default: equal within each group. `s²_g` is
+    estimated from the standardised residuals, `Σ_g r_i²/a_i / (Σ_g (1 − 2 h_ii) +
+    Σ_{i∈g, j} h_ij² a_j/a_i)` (one step, the other groups' factors taken equal; with
+    `a ≡ 1` the denominator is `n_g − tr H_gg`), and the meat is `Σ_i s²_g a_i J_iᵀJ_i`.
+    Rows with `a_i = 0` carry no noise and count in neither.
 
     **Raises:** `ValueError` when there are no more observations than parameters.
     """
     J = np.asarray(J, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
     used = np.any(J != 0, axis=1) | (r != 0)
+    a = np.ones(len(r)) if gains is None else np.asarray(gains, dtype=np.float64)
+    if a.shape != r.shape or not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise ValueError("gains must be finite, >= 0 and one per residual")
+    used &= a > 0
     col = np.linalg.norm(J, axis=0)
     d = np.where(col > 0, 1.0 / np.where(col > 0, col, 1.0), 1.0)
     U, s, Vt = np.linalg.svd(J * d, full_matrices=False)
@@ -132,18 +205,24 @@ def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8):
         raise ValueError("the calibration has no redundancy (residuals <= parameters)")
     pooled = float(np.sum(r[used] ** 2) / (n - p))
     h = np.sum(U * U, axis=1)  # diagonal of the hat matrix: each row's share of p
+    inv_a = np.where(used, 1.0 / np.where(used, a, 1.0), 0.0)
+    a_used = np.where(used, a, 0.0)
+    # Σ_{i∈g} Σ_j h_ij² a_j / a_i = tr(U_gᵀ diag(1/a) U_g · Uᵀ diag(a) U)
+    UaU = (U * a_used[:, None]).T @ U
     bounds = np.cumsum([0] + list(sizes))
     US = U * s  # J d = U S Vᵀ, so group g's rows of J d are (U S)_g Vᵀ
     B = np.zeros((len(s), len(s)))
     factors, redund, counts = [], [], []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        m = used[a:b]
-        red = float(m.sum() - np.sum(h[a:b][m]))
-        s2 = float(np.sum(r[a:b][m] ** 2) / red) if red >= MIN_REDUNDANCY else pooled
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        m = used[lo:hi]
+        Ug = U[lo:hi] * np.sqrt(inv_a[lo:hi])[:, None]
+        red = float(np.sum(1.0 - 2.0 * h[lo:hi][m]) + np.sum((Ug.T @ Ug) * UaU))
+        q = float(np.sum(r[lo:hi][m] ** 2 * inv_a[lo:hi][m]))
+        s2 = q / red if red >= MIN_REDUNDANCY else pooled
         factors.append(s2)
         redund.append(red)
         counts.append(int(m.sum()))
-        A = US[a:b][m]
+        A = US[lo:hi][m] * np.sqrt(a[lo:hi][m])[:, None]
         B += s2 * (A.T @ A)
     # (JᵀJ)⁺ = d V S⁻² Vᵀ d, so the sandwich is d V S⁻² B S⁻² Vᵀ d
     inv2 = 1.0 / s**2

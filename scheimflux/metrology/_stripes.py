@@ -126,6 +126,9 @@ def _calibration_covariance(cal, diag, how):
         )
     if how.covariance.shape != diag.covariance.shape:
         raise ValueError("calibration_covariance does not match the calibration's parameters")
+    if how.weighting == "pixels":
+        noise = ", ".join(f"{g} {np.sqrt(v):.3g} px" for g, v in how.variance_factors.items())
+        return how.covariance, f"pixel noise from the residuals: {noise}"
     factors = ", ".join(f"{g} {v:.3g}" for g, v in how.variance_factors.items())
     return how.covariance, f"variance factors {factors}"
 
