@@ -184,6 +184,8 @@ class ExportedJit:
     # ----------------------------------------------------------------------- key
     def key(self, args) -> tuple[str, list, object, list]:
         """`(key, dynamic leaves, treedef, leaves)` of a call; `_Unkeyable` if none."""
+        if not _known_module(self.fun.__module__) or "<" in self.fun.__qualname__:
+            raise _Unkeyable(f"function {self.fun.__module__}.{self.fun.__qualname__}")
         leaves, treedef = jax.tree.flatten(args)
         dynamic = [x for x in leaves if eqx.is_array(x)]
         parts = [

@@ -199,3 +199,71 @@ def test_second_process_reads_the_exported_solver(small_obs, tmp_path):
     assert not set(second["traces"]) & set(_SOLVER), second["traces"]
     assert second["steps"] == first["steps"]
     np.testing.assert_array_equal(second["x"], first["x"])  # the same compiled program
+
+
+def test_export_mechanism(tmp_path, monkeypatch, caplog):
+    # the key, the files and the fallbacks on a small program of scheimflux's (a sum of
+    # squares): read back equal to the traced program's, damage and foreign keys ignored
+    import logging
+
+    from scheimflux import _export
+    from scheimflux.calibrate._lm import _sum_squares
+
+    monkeypatch.setenv("SCHEIMFLUX_CACHE_DIR", str(tmp_path))
+    program = _export.exported_jit(_sum_squares)
+    tree = {"a": jax.numpy.arange(5.0), "b": np.linspace(0.0, 1.0, 7)}
+    expected = float(np.sum(np.arange(5.0) ** 2) + np.sum(np.linspace(0.0, 1.0, 7) ** 2))
+
+    global _counts
+    _counts = {}
+    try:
+        assert float(program(tree)) == float(program.traced(tree))
+        assert abs(float(program(tree)) - expected) <= 1e-15 * expected  # ~4 ulp
+        (file,) = (tmp_path / "export").glob("_sum_squares-*.sfx")
+        n = _counts.get("_sum_squares", 0)
+        assert n >= 1
+        # another shape: another key, another file
+        program({"a": jax.numpy.arange(6.0), "b": tree["b"]})
+        assert len(list((tmp_path / "export").glob("*.sfx"))) == 2
+        # read back in a "new process" (programs forgotten): not traced
+        program.clear()
+        n = _counts.get("_sum_squares", 0)
+        assert float(program(tree)) == float(program.traced(tree))
+        assert _counts.get("_sum_squares", 0) == n
+        # truncated: ignored with a debug log, traced, written again
+        file.write_bytes(file.read_bytes()[:-100])
+        program.clear()
+        with caplog.at_level(logging.DEBUG, logger="scheimflux._export"):
+            assert float(program(tree)) == float(program.traced(tree))
+        assert "ignored (checksum mismatch" in caplog.text
+        assert _counts.get("_sum_squares", 0) > n
+        key = file.name[len("_sum_squares-") : -len(".sfx")]
+        assert _export._read(file, key) is not None  # rewritten, whole
+        assert _export._read(file, "0" * len(key)) is None  # a file of another key
+        file.write_bytes(b"garbage")
+        assert _export._read(file, key) is None
+    finally:
+        _counts = None
+
+
+def test_export_falls_back_to_tracing(tmp_path, monkeypatch):
+    # what has no stable identity is not exported: a lambda among the static leaves, a
+    # function of another package; the result is the traced program's
+    from scheimflux import _export
+    from scheimflux.calibrate._lm import _sum_squares
+
+    monkeypatch.setenv("SCHEIMFLUX_CACHE_DIR", str(tmp_path))
+
+    def apply(f, x):
+        return f(x)
+
+    program = _export.exported_jit(_sum_squares)
+    with pytest.raises(_export._Unkeyable):
+        program.key(({"f": lambda x: x, "x": np.ones(3)},))
+    outside = _export.exported_jit(apply)  # a function of the tests, not of scheimflux
+    assert float(outside(jax.numpy.sin, np.zeros(2))[0]) == 0.0
+    assert not (tmp_path / "export").exists()
+    monkeypatch.setenv("SCHEIMFLUX_EXPORT", "off")
+    assert _export.export_dir() is None
+    assert float(program({"x": np.ones(3)})) == 3.0
+    assert not (tmp_path / "export").exists()
