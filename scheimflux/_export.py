@@ -229,7 +229,13 @@ class ExportedJit:
     def _compile(self, exp):
         avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
                  for a in exp.in_avals]  # fmt: skip
-        lowered = jax.jit(exp.call).lower(*avals)
+        def run(*arrays):
+            return exp.call(*arrays)
+
+        # named for the compilation cache's files and JAX's events (not the function's
+        # own name: that is traced only when the program is exported)
+        run.__name__ = run.__qualname__ = f"{self.__name__}_exported"
+        lowered = jax.jit(run).lower(*avals)
         return lowered.compile(compiler_options=self.compiler_options or None)
 
     def _load_or_export(self, folder, key, dynamic, treedef, leaves) -> _Program | None:
