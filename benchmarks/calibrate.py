@@ -15,8 +15,9 @@ calibrated table axis. `--quick` uses 8 views, 12 gauge frames and fewer timing 
 `--cold-start` measures what a user waits for instead:
 the demo's observations (`scheimflux simulate`), `scheimflux calibrate` as a whole
 process with an empty and with a warm compilation cache, the compiled calibration in
-one process, and per compiled program the time spent tracing, lowering to MLIR and in
-XLA's compiler — beside OpenCV's `calibrateCamera(CALIB_TILTED_MODEL)` on the same
+one process, per compiled program the time spent tracing, lowering to MLIR and in
+XLA's compiler, and those phases in a warm process (exported programs and compilation
+cache filled) — beside OpenCV's `calibrateCamera(CALIB_TILTED_MODEL)` on the same
 corners, in the same run.
 """
 
