@@ -22,7 +22,8 @@ number, a string, None, a function of scheimflux or one of the libraries above (
 name), or an object with an `export_key()` method. Anything else (a lambda, a user's
 function, an object whose repr shows its address), and a pytree node defined elsewhere,
 make that call use the traced path (`eqx.filter_jit`), as does a failure to export or
-serialize (logged at debug level).
+serialize (logged at debug level), and a call inside a JAX transformation (`jit`, `grad`,
+`vmap`: its arguments are tracers; the traced program is nested in the outer one).
 
 **On disk**: one file per key, `<name>-<key>.sfx`, in `<cache folder>/export`: a format
 line, a JSON header (key, function, JAX version, SHA-256 of the payload) and the payload
@@ -216,6 +217,8 @@ class ExportedJit:
         except _Unkeyable as e:
             log.debug("%s: traced, not exported (%s has no stable identity)", self, e)
             return self.traced(*args)
+        if any(isinstance(x, jax.core.Tracer) for x in dynamic):
+            return self.traced(*args)  # inside jit, grad, vmap...: a nested jit
         if key not in self._programs:
             self._programs[key] = self._load_or_export(folder, key, dynamic, treedef, leaves)
         program = self._programs[key]

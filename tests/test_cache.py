@@ -242,6 +242,9 @@ def test_export_mechanism(tmp_path, monkeypatch, caplog):
         assert _export._read(file, "0" * len(key)) is None  # a file of another key
         file.write_bytes(b"garbage")
         assert _export._read(file, key) is None
+        # under a transformation (here grad): the traced program, nested
+        g = jax.grad(lambda a: program({"a": a, "b": tree["b"]}))(jax.numpy.arange(5.0))
+        np.testing.assert_array_equal(g, 2 * np.arange(5.0))
     finally:
         _counts = None
 
