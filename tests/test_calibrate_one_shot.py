@@ -130,5 +130,7 @@ def test_least_squares_compiles_only_solver_programs_per_shape():
         jax.monitoring.unregister_event_duration_listener(listen)
     assert fit.converged and fit.rms < 1e-8  # noise-free data: the truth is recovered
     np.testing.assert_allclose(np.asarray(fit.params.g), np.asarray(truth.g), atol=1e-7)
-    assert "least_squares" in names and "_normal_detect" in names, names
-    assert set(names) <= {"least_squares", "_normal_detect", "_normal_at"}, names
+    # the LM loop is `_solve._lm_solve` (traced: a residual function of the tests is
+    # not exported)
+    assert "_lm_solve" in names and "_normal_detect" in names, names
+    assert set(names) <= {"_lm_solve", "_normal_detect", "_normal_at"}, names

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_jit
 from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
 from ..camera._noncentral import ThickLensNonCentral
 from ..camera._opencv import OpenCVCamera
@@ -265,7 +266,7 @@ def calibrate_camera(
 
 # Compiled residual evaluation for the summaries (eager evaluation would dispatch every
 # operation of the distortion's fixed point separately).
-_corner_errors_jit = eqx.filter_jit(corner_errors_px, compiler_options=ONE_SHOT)
+_corner_errors_jit = exported_jit(corner_errors_px, compiler_options=ONE_SHOT)
 
 
 def _corner_errors(params, data: CalibrationData) -> np.ndarray:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_jit
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose, rotation_matrix
@@ -98,7 +99,7 @@ def _stack_poses(Rs, ts) -> Pose:
     )
 
 
-@eqx.filter_jit(compiler_options=ONE_SHOT)
+@exported_jit(compiler_options=ONE_SHOT)
 def _directions(camera, uv):
     """The unit ray directions of pixels `uv` `(N, 2)`, compiled (eagerly, every
     operation of the back-projection would be a program of its own, per shape)."""

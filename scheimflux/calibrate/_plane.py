@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_jit
 from ..geometry._fitting import fit_plane_svd
 from ..geometry._plane import LaserPlane
 from ..geometry._transforms import Pose
@@ -20,7 +20,7 @@ from ._solve import ONE_SHOT
 
 # Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`):
 # the stripe and gauge residuals in one program (one back-projection of their pixels).
-_laser_residuals_jit = eqx.filter_jit(laser_residuals, compiler_options=ONE_SHOT)
+_laser_residuals_jit = exported_jit(laser_residuals, compiler_options=ONE_SHOT)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +37,7 @@ class PlaneFit:
         return float(np.sqrt(np.mean(self.residuals_mm**2)))
 
 
-@eqx.filter_jit(compiler_options=ONE_SHOT)
+@exported_jit(compiler_options=ONE_SHOT)
 def _onto_planes(camera, normals, uv):
     """Each pixel's ray meets its own plane `n · X = 1` (rows of `normals`)."""
 

@@ -24,6 +24,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from .._export import exported_jit
 from ._linear import (
     BlockStructure,
     block_layout,
@@ -239,6 +240,9 @@ class _Unravel:
     def __hash__(self):
         return hash(self._key)
 
+    def export_key(self) -> str:
+        return repr(self._key)
+
     def __call__(self, flat):
         out, i = [], 0
         for shape in self.shapes:
@@ -285,7 +289,7 @@ def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mas
     return BlockLevenbergMarquardt(structure, mask, rtol, atol)
 
 
-@eqx.filter_jit(compiler_options=ONE_SHOT)
+@exported_jit(compiler_options=ONE_SHOT)
 def _normal_at(x, args, structure: BlockStructure, z):
     """Residual, block normal matrix, and `J z` twice to check the structure against:
     from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
@@ -296,7 +300,7 @@ def _normal_at(x, args, structure: BlockStructure, z):
     return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
 
 
-@eqx.filter_jit(compiler_options=ONE_SHOT)
+@exported_jit(compiler_options=ONE_SHOT)
 def _normal_detect(x, args, global_cols, local_cols, probes, z):
     """`_normal_at` with the rows' blocks found in the same program.
 
@@ -433,17 +437,15 @@ def least_squares(
         free, spec_free = _held(params, spec, hold)
         scale = np.where(free, scale, 0.0)
     args = (fn, unravel, static, data, x0, jax.device_put(scale))
-    sol = optx.least_squares(
-        _scaled,
-        levenberg_marquardt(structure, rtol, atol, jax.device_put(free.astype(x0_h.dtype))),
-        jax.device_put(np.zeros_like(x0_h)),
-        args,
-        max_steps=max_steps,
-        throw=False,
+    solver = levenberg_marquardt(structure, rtol, atol, jax.device_put(free.astype(x0_h.dtype)))
+    value, result, num_steps = _lm_solve(
+        jax.device_put(np.zeros_like(x0_h)), args, solver, max_steps
     )
+    result = jax.tree.unflatten(_RESULT_TREE, [result])
+    stats = {"num_steps": num_steps, "max_steps": max_steps}
     # residuals and JᵀJ at the solution (for the covariance): the start's program again
     # (rows re-detected; the start's structure if they no longer split the same way)
-    x_end_h = x0_h + np.asarray(sol.value) * scale
+    x_end_h = x0_h + np.asarray(value) * scale
     x_end = jax.device_put(x_end_h)
     end = _normal_equations(x_end, args0, layout if structure.n_blocks else structure, z)
     if end[0].n_blocks != structure.n_blocks:
@@ -460,13 +462,13 @@ def least_squares(
         _check_rank(H_end if np.all(np.isfinite(H_end)) else H_start, params, spec_free)
     elapsed = time.perf_counter() - t0
     finite = bool(np.all(np.isfinite(r_h)))
-    ok = bool(sol.result == optx.RESULTS.successful) and finite
-    message = result_message(sol.result, finite)
+    ok = bool(result == optx.RESULTS.successful) and finite
+    message = result_message(result, finite)
     fit = Fit(
         params=eqx.combine(jax.device_put(unravel(x_end_h)), static),
         converged=bool(ok),
         message=message,
-        steps=int(sol.stats["num_steps"]),
+        steps=int(num_steps),
         residuals=r,
         initial_cost=float(0.5 * np.sum(r0**2)),
         cost=float(0.5 * np.sum(r_h**2)),
@@ -476,12 +478,24 @@ def least_squares(
         normal_matrix=H_end,
         labels=tuple(parameter_labels(params, spec_free)),
         n_observations=int(np.count_nonzero(r_h)),
-        result=sol.result,
-        stats=dict(sol.stats),
+        result=result,
+        stats=stats,
     )
     if throw and not ok:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {message}", fit)
     return fit
+
+
+_RESULT_TREE = jax.tree.structure(optx.RESULTS.successful)
+
+
+@exported_jit
+def _lm_solve(y0, args, solver, max_steps: int):
+    """The Levenberg–Marquardt loop (optimistix's `least_squares` on `_scaled`):
+    `(solution, optimistix result code, number of steps)`, arrays only (an exported
+    program's outputs)."""
+    sol = optx.least_squares(_scaled, solver, y0, args, max_steps=max_steps, throw=False)
+    return sol.value, sol.result._value, sol.stats["num_steps"]
 
 
 def _held(params, spec, hold: Sequence[str]):

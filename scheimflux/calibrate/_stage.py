@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._export import exported_jit
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
@@ -72,7 +73,7 @@ class StageCalibration:
 
 
 # Backprojection onto the laser plane, compiled once per (padded) number of pixels.
-_laser_points_jit = eqx.filter_jit(_laser_points_safe, compiler_options=ONE_SHOT)
+_laser_points_jit = exported_jit(_laser_points_safe, compiler_options=ONE_SHOT)
 
 
 def _gauge_points(camera, plane: LaserPlane, frames) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_jit
 from ..reconstruct._reconstruct import intersect_ray_plane
 from ._model import CalibrationData
 from ._solve import ONE_SHOT, split
@@ -79,7 +80,7 @@ def _perp_max(J: np.ndarray, cov: np.ndarray, d: np.ndarray) -> float:
     return float(math.sqrt(max(float(np.linalg.eigvalsh(c).max()), 0.0)))
 
 
-@eqx.filter_jit(compiler_options=ONE_SHOT)
+@exported_jit(compiler_options=ONE_SHOT)
 def _gradients(params, spec, uv, j):
     """Per ordered pair of reference pixels: L and ∇L; the axis direction and its
     Jacobian; per pixel the Jacobian of the axis foot.
