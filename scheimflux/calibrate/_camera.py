@@ -17,7 +17,7 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._gauge import ideal_freeze
+from ._gauge import GAUGE_HELD, PROFILED, GaugeProfile, ideal_freeze, profile_solve, start_holds
 from ._init import (
     _directions,
     closed_form_pinhole,
@@ -28,7 +28,7 @@ from ._init import (
 )
 from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
-from ._solve import ONE_SHOT, Fit, least_squares
+from ._solve import ONE_SHOT, Fit, NotConvergedError, least_squares
 
 MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
 # the models built on the thick lens (nominal start, pixel pitch, distortion first)
@@ -95,6 +95,9 @@ class CameraCalibration:
     reprojection_rms_px: float
     init: str
     freeze: tuple = ()  # the parameter paths held fixed
+    # where the default gauge placed the profiled parameter (`_gauge.profile_solve`);
+    # None where the frozen set was given or the camera has no distortion
+    gauge_profile: GaugeProfile | None = None
 
 
 def _initial(obs, model, init):
@@ -213,8 +216,21 @@ def calibrate_camera(
             "distortion='none' or the thick-lens model"
         )
     camera, poses, how = _initial(obs, model, init)
-    freeze = _model_freeze(model, how, freeze, opencv_flags)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
+    if freeze is None and model in THICK_LENS_MODELS and distortion != "none":
+        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
+        fit, profile = _gauge_free_solve(
+            SystemParams(camera, poses), data, how, obs.width, max_steps
+        )
+        freeze = GAUGE_HELD + (PROFILED,)
+        if not profile.converged and throw:
+            raise NotConvergedError(
+                f"the gauge profile of {PROFILED} did not converge "
+                f"({len(profile.values)} solves; the last: {fit.message or 'converged'})",
+                fit,
+            )
+        return _finish(fit, data, how, freeze, model, max_steps, throw, profile)
+    freeze = _model_freeze(model, how, freeze, opencv_flags)
     # The ideal camera first (the distortion at zero, held), then with the distortion
     # free. The distortion is held at run time (`hold`), not frozen: both solves have
     # the same state vector and run the same compiled program.
@@ -246,7 +262,39 @@ def calibrate_camera(
         max_steps=max_steps,
         throw=throw and not central_first,
     )
-    if central_first:
+    return _finish(fit, data, how, freeze, model, max_steps, throw)
+
+
+def _gauge_free_solve(params, data, how, width, max_steps):
+    """The default thick lens with distortion: only the pixel pitch and f held.
+
+    One compiled program (the same state vector; what is held changes at run time):
+    1. the ideal camera, the distortion, e and the ideal gauge held at their start
+       values (the tilt for a nominal start, the axis point for a closed-form one);
+    2. the distortion free, the ideal gauge still held;
+    3. the tilt and the axis point free, the axis point's x (`PROFILED`) placed at the
+       minimum of the cost profile (`_gauge.profile_solve`): along the axis point
+       against the boards' translations Levenberg–Marquardt alone creeps and stops on
+       rounding noise (docs/noncentral.md).
+
+    **Returns:** `(fit, profile)`.
+    """
+    ideal, distorted = start_holds(how)
+
+    def solve(p, hold=(PROFILED,)):
+        return least_squares(
+            camera_residuals, p, data, freeze=GAUGE_HELD, hold=hold,
+            max_steps=max_steps, throw=False,
+        )  # fmt: skip
+
+    first = solve(params, ideal)
+    second = solve(first.params, distorted)
+    return profile_solve(solve, second.params, grid=np.linspace(0.0, width - 1.0, 9))
+
+
+def _finish(fit, data, how, freeze, model, max_steps, throw, profile=None):
+    """The non-central solve (from the central optimum) and the `CameraCalibration`."""
+    if model == "thick-lens-noncentral":
         # the central thick lens's optimum is the start, the pupil's shift from zero
         camera = ThickLensNonCentral.from_central(fit.params.camera)
         fit = least_squares(
@@ -259,7 +307,7 @@ def calibrate_camera(
         )
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
-        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), profile
     )
 
 
