@@ -57,8 +57,9 @@ def make_distortion(name: str):
 # defaults fix the pixel pitch (datasheet), f (lens datasheet) and a gauge for the
 # tilt: the nominal adapter tilt when it is known, else the axis through the sensor
 # centre. `diagnostics()` reports the singular values that show this. With distortion
-# the tilt is no longer an exact gauge (`_gauge`, docs/noncentral.md: measured, not yet
-# solved; `freeze=("camera.dx", "camera.dy", "camera.f")` frees it).
+# the tilt is no longer an exact gauge: the default with distortion holds only pitch
+# and f and profiles the axis point's x (`_gauge`, docs/noncentral.md); these sets stay
+# the ideal stage's gauge and the default of `distortion="none"`.
 DEFAULT_FREEZE = {
     ("thick-lens", "nominal"): ideal_freeze("nominal"),
     ("thick-lens", "closed-form"): ideal_freeze("closed-form"),
@@ -175,16 +176,20 @@ def calibrate_camera(
       `"closed-form"` (homographies, no nominal tilt needed) or `"auto"` (nominal when
       the observations give focal length, magnification and tilt).
     - `freeze`: parameter paths held fixed, e.g. `("camera.dx", "camera.dy")`; None:
-      `DEFAULT_FREEZE[(model, how it was initialised)]` (pixel pitch, f and a tilt
-      gauge for the thick lens); with `"opencv"` the terms outside `opencv_flags` are
+      the default gauge. For the thick lens with distortion only the pixel pitch and f
+      are held: the tilt is free and the axis point's x is placed at the minimum of its
+      cost profile (`_gauge.profile_solve`; the result lists `camera.x0` as held and
+      `gauge_profile` holds the profile). Otherwise `DEFAULT_FREEZE[(model, how it was
+      initialised)]` (pixel pitch, f and the tilt or the axis point for the
+      distortion-free thick lens). With `"opencv"` the terms outside `opencv_flags` are
       always added.
     - `sigma_corner_px`: the corners' noise σ (px per coordinate): the residuals'
       weight.
     - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners; None: plain
       least squares.
     - `max_steps`: Levenberg–Marquardt steps per solve.
-    - `throw`: raise `NotConvergedError` if the final solve does not converge (the
-      first, ideal-camera solve never raises).
+    - `throw`: raise `NotConvergedError` if the final solve (or the default gauge's
+      profile) does not converge (the first, ideal-camera solve never raises).
     - `opencv_flags`: for `model="opencv"` (OpenCV's camera, equal to
       `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
       `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`

@@ -6,28 +6,27 @@ to a rotation (absorbed by the board poses) and a scale: five numbers for the se
 parameters left once the pixel pitch is known (datasheet). Two combinations are then
 exactly unobservable: one along (f, e, z0) and the sensor tilt against the axis point
 (φ, θ against x0, y0). Holding f and the tilt (nominal initialisation) or f and the
-axis point (closed form) fixes them, and any value gives the same rays.
+axis point (closed form) fixes them, and any value gives the same rays
+(`IDEAL_GAUGE`, `DEFAULT_FREEZE`).
 
 Distortion in the untilted image plane is radial about the optical axis: it ties the axis
 point, and with it the tilt, to the data. The tilt is then no longer a gauge, and holding
 it at a rounded nominal value biases what is measured (a 1° error moved noise-free
-pairwise distances by 0.05 µm on a 50 mm double Gauss at ×0.5, 1600 × 1200 px; the
-issue's 75 mm telephoto: 0.19 µm). The singular values of the column-scaled Jacobian
-with only the pixel pitch frozen show one null direction, along (f, z0, e) (exact: any f
-gives the same rays), and next to it the axis point against the boards' translations
-(eigenvalues of the scaled JᵀJ 3e-14 – 1e-12: determined only through the distortion's
-centre); the tilt has no part in either (docs/noncentral.md lists them). Holding the
-axis point is no gauge either: held at the sensor centre 29 px from the true axis it
-biased noise-free distances by 0.28 µm. Freeing both (pitch and `f` held,
-`distorted_freeze`) is the exact gauge, but Levenberg–Marquardt then creeps along the
-weak axis-point valley (8 corner-only views of that scene: not converged in 200 steps).
-So the default (`DEFAULT_FREEZE`, tilt held) is NOT changed yet: issue 16 part 1 is
-measured here, not solved; the likely fix is a weak prior residual block on the axis
-point (or on the tilt) toward its nominal value. `distorted_freeze` and
-`solve_with_gauge` (free, fall back to the held gauge on a rank-deficient solve) are
-the pieces for it.
+pairwise distances by 0.05 µm on a 50 mm double Gauss at ×0.5, 1600 × 1200 px); so does
+holding the axis point (0.28 µm at the sensor centre, 29 px from the true axis). Only
+the pixel pitch and f are held by default (`GAUGE_HELD`: the (f, e, z0) direction is at
+the rounding level of the column-scaled Jacobian's singular values).
 
-`gauge_spectrum` computes these singular values and directions for any solve.
+What remains weakest is the axis point's x against the boards' x translations, with
+the tilt following it (relative singular value ~4e-7 on that scene, at the solver's rank
+threshold): Levenberg–Marquardt with it free creeps for hundreds of steps and stops on
+rounding noise, short of the optimum. `profile_solve` places it instead: solves with x0
+held (well conditioned) on a grid across the sensor, then parabolic steps to the
+minimum of the cost profile, which need not be convex (that scene's profile has two
+minima, 0.14 µm apart in distances). A nominal tilt off by 1° or 3° then changes
+noise-free distances by ~1e-11 µm (docs/noncentral.md, tests/test_gauge.py).
+
+`gauge_spectrum` computes the singular values and weakest directions for any solve.
 """
 
 from __future__ import annotations
