@@ -86,8 +86,12 @@ def test_profile_extends_past_the_grid():
         x = float(p.camera.x0)
         return _FakeFit(p, 1.0 + 1e-5 * (x - 2100.0) ** 2)
 
-    _, prof = profile_solve(solve, _Holder(_X(jnp.asarray(800.0))), grid=[0.0, 800.0, 1600.0])
-    assert prof.converged and abs(prof.value - 2100.0) < 1e-3, prof
+    start = _Holder(_X(jnp.asarray(800.0)))
+    _, prof = profile_solve(solve, start, grid=[0.0, 800.0, 1600.0])
+    assert prof.converged and abs(prof.value - 2100.0) < 1e-3 and not prof.at_bound, prof
+    # within bounds that exclude it, it stays at the bound and says so
+    fit, prof = profile_solve(solve, start, grid=[0.0, 800.0, 1600.0], bounds=(0.0, 1800.0))
+    assert prof.at_bound and prof.value == 1800.0 and float(fit.params.camera.x0) == 1800.0
 
 
 @pytest.fixture(scope="module")

@@ -294,7 +294,11 @@ def _gauge_free_solve(params, data, how, width, max_steps):
 
     first = solve(params, ideal)
     second = solve(first.params, distorted)
-    return profile_solve(solve, second.params, grid=np.linspace(0.0, width - 1.0, 9))
+    # the axis point kept on the sensor (the "axis point" quality gate): where the noise
+    # pushes the profile's minimum off it, x0 stays at the sensor's edge (`at_bound`)
+    return profile_solve(
+        solve, second.params, grid=np.linspace(0.0, width - 1.0, 9), bounds=(0.0, width - 1.0)
+    )
 
 
 def _finish(fit, data, how, freeze, model, max_steps, throw, profile=None):

@@ -82,6 +82,8 @@ class GaugeProfile:
       (`1 / √(d²cost/dx²)`, at the residuals' σ), or `nan` when not resolved.
     - `converged`: the vertex moved less than `tol` (and every solve converged).
     - `steps`: Levenberg–Marquardt steps of all the profile's solves together.
+    - `at_bound`: the profile still fell at a bound of the search (`value` is that
+      bound, not the data's optimum).
     """
 
     path: str
@@ -91,6 +93,7 @@ class GaugeProfile:
     sigma: float
     converged: bool
     steps: int
+    at_bound: bool = False
 
 
 def _vertex(x, c):
@@ -106,6 +109,7 @@ def profile_solve(
     *,
     path: str = PROFILED,
     grid,
+    bounds: tuple[float, float] = (-np.inf, np.inf),
     tol_sigma: float = 1e-3,
     tol_abs: float = 1e-6,
     max_refinements: int = 12,
@@ -131,6 +135,8 @@ def profile_solve(
     - `params`: the start.
     - `path`: a scalar parameter path, e.g. `"camera.x0"`.
     - `grid`: the values of the first scan (at least three, evenly spaced).
+    - `bounds`: the range searched: where the profile still falls at a bound, the
+      value stays there (`at_bound`).
     - `tol_sigma`, `tol_abs`: the refinement's stopping test.
     - `max_refinements`: solves after the scan at most.
 
@@ -161,20 +167,25 @@ def profile_solve(
     x_c = float(get(params))
     for x in sorted(grid, key=lambda v: abs(v - x_c)):
         evaluate(float(x))
-    value, sigma, converged = x_c, float("nan"), False
+    lo, hi = (float(b) for b in bounds)
+    value, sigma, converged, at_bound = x_c, float("nan"), False, False
     for _ in range(max_refinements):
         pts = sorted(evaluated, key=lambda e: e[0])
         xs = np.array([e[0] for e in pts])
         cs = np.array([e[1].cost for e in pts])
         i = int(np.argmin(cs))
         if i == 0 or i == len(pts) - 1:  # the minimum is not bracketed: step outward
-            evaluate(xs[i] + (spacing if i else -spacing))
+            x = float(np.clip(xs[i] + (spacing if i else -spacing), lo, hi))
+            if x == xs[i]:  # at the bound already
+                value, converged, at_bound = x, True, True
+                break
+            evaluate(x)
             continue
         v, curv = _vertex(xs[i - 1 : i + 2], cs[i - 1 : i + 2])
         if not np.isfinite(v):
             break
         sigma = 1.0 / np.sqrt(curv)
-        value = float(v)
+        value = float(np.clip(v, lo, hi))
         if np.min(np.abs(xs - value)) <= max(tol_sigma * sigma, tol_abs):
             converged = True
             break
@@ -192,6 +203,7 @@ def profile_solve(
         float(sigma),
         bool(ok),
         int(sum(e[1].steps for e in evaluated)),
+        at_bound,
     )
     return best, profile
 
