@@ -23,13 +23,16 @@ coverage are included (that is where the models extrapolate). `--quick`: tessar,
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import time
 
+import cv2
 import numpy as np
 
 from scheimflux.calibrate import calibrate
+from scheimflux.io import read_observations, write_observations
 from scheimflux.reconstruct._reconstruct import stripe_to_camera
 from scheimflux.simulate import build_rig, load_lens, simulate_observations
 from scheimflux.simulate._pupil import pupil_grid, pupil_points
@@ -42,7 +45,7 @@ CORNER_NOISE = 0.03
 STRIPE_NOISE = 0.05
 LENSES = ("singlet", "achromat", "double-gauss", "tessar")
 MAGS = (0.5, 1.0, 2.0)
-MODELS = ("thick-lens", "opencv")
+MODELS = ("thick-lens", "thick-lens-noncentral", "opencv")
 
 
 def _board(magnification: float) -> Checkerboard:
@@ -68,76 +71,139 @@ def _grid_points(rig, sampling, imaging):
     return X[ok], uv[ok]
 
 
+def _covered(obs, uv) -> np.ndarray:
+    """Which pixels lie inside the convex hull of every detected corner of every view: the
+    part of the image the calibration data cover (outside it every model extrapolates)."""
+    c = np.concatenate([np.asarray(v.corners_px) for v in obs.views])
+    c = c[np.all(np.isfinite(c), axis=1)].astype(np.float32)
+    hull = cv2.convexHull(c)
+    return np.array([cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0 for u, v in uv])
+
+
 def _pair_error_um(cal, X, uv) -> float:
+    """RMS (µm) over all pairs of the error of reconstructed distances; a point that does
+    not reconstruct makes the whole figure NaN (never silently dropped)."""
+    if len(X) < 2:
+        return math.nan
     P = np.asarray(stripe_to_camera(cal.camera, cal.plane, uv).points)
+    if not np.all(np.isfinite(P)):
+        return math.nan
     i, j = np.triu_indices(len(X), 1)
     d = np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(X[i] - X[j], axis=1)
-    d = d[np.isfinite(d)]
-    return float(np.sqrt(np.mean(d**2)) * 1e3) if len(d) else math.nan
+    return float(np.sqrt(np.mean(d**2)) * 1e3)
 
 
-def _calibrate(obs, model: str):
-    kw = dict(throw=False)
-    if model == "opencv":
-        kw.update(model="opencv", opencv_flags="tilted")
-    elif model != "thick-lens":
-        kw.update(model=model)
+FREE_TILT = ("camera.dx", "camera.dy", "camera.f")
+
+#: Named calibrations: `calibrate(**kwargs)`. Any other name is passed as `model=`.
+CONFIGS = {
+    "thick-lens": dict(),
+    "thick-lens-noncentral": dict(model="thick-lens-noncentral"),
+    "opencv": dict(model="opencv", opencv_flags="tilted"),
+    # the sensor tilt and the axis point free (only the pixel pitch and f held)
+    "thick-lens+tilt": dict(freeze=FREE_TILT),
+    "thick-lens-noncentral+tilt": dict(model="thick-lens-noncentral", freeze=FREE_TILT),
+}
+
+
+def _calibrate(obs, name: str):
+    kw = dict(throw=False, **CONFIGS.get(name, dict(model=name)))
     t0 = time.perf_counter()
     cal = calibrate(obs, **kw)
     conv = all(f.converged for f in cal.fits.values())
     return cal, conv, time.perf_counter() - t0
 
 
-def run_world(lens_name, mag, seeds, models, imaging, f_number, rings):
+def _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache):
+    """The observations of one seed (from `cache` when there)."""
+    path = None
+    if cache:
+        path = os.path.join(cache, f"{lens_tag}-x{mag:g}-{imaging}-s{seed}.json")
+        if os.path.exists(path):
+            return read_observations(path)
+    obs, _ = simulate_observations(
+        rig,
+        _board(mag),
+        n_views=15,
+        corner_noise_px=CORNER_NOISE,
+        stripe_noise_px=STRIPE_NOISE,
+        stage_scan=False,
+        seed=seed,
+        imaging=imaging,
+        pupil=sampling,
+    )
+    if path:
+        os.makedirs(cache, exist_ok=True)
+        write_observations(path, obs, overwrite=True)
+    return obs
+
+
+def _median(v) -> float:
+    v = np.asarray(v, dtype=float)
+    return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
+
+
+def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=None, log=None):
+    """One lens × magnification: per model the medians over the seeds of the error on the
+    covered part of the laser plane and on the full-sensor grid, and the flags."""
     lens = load_lens(lens_name)
     if f_number is not None:
         lens = lens.with_f_number(f_number)
+    lens_tag = lens_name if f_number is None else f"{lens_name}-f{f_number:g}"
     rig = build_rig(lens, mag, sensor=SENSOR, pixel_pitch_mm=(PITCH_MM, PITCH_MM))
     sampling = pupil_grid(rings)
-    X, uv = _grid_points(rig, sampling, imaging)
-    errs = {m: [] for m in models}
+    grid = cache and os.path.join(cache, f"{lens_tag}-x{mag:g}-{imaging}-grid.npz")
+    if grid and os.path.exists(grid):
+        with np.load(grid) as z:
+            X, uv = z["X"], z["uv"]
+    else:
+        X, uv = _grid_points(rig, sampling, imaging)
+        if grid:
+            os.makedirs(cache, exist_ok=True)
+            np.savez(grid, X=X, uv=uv)
+    errs = {m: dict(covered=[], full=[]) for m in models}
     flags = {m: "" for m in models}
     for seed in seeds:
-        obs, _ = simulate_observations(
-            rig,
-            _board(mag),
-            n_views=15,
-            corner_noise_px=CORNER_NOISE,
-            stripe_noise_px=STRIPE_NOISE,
-            stage_scan=False,
-            seed=seed,
-            imaging=imaging,
-            pupil=sampling,
-        )
+        obs = _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache)
+        inside = _covered(obs, uv)
         for m in models:
+            rec = dict(lens=lens_tag, mag=mag, seed=seed, imaging=imaging, model=m,
+                       n_covered=int(inside.sum()), n_full=len(X))  # fmt: skip
             try:
-                cal, conv, _ = _calibrate(obs, m)
+                cal, conv, dt = _calibrate(obs, m)
             except Exception as err:  # noqa: BLE001 - a benchmark cell, not a library path
-                print(f"  {lens_name} ×{mag:g} seed {seed} {m}: failed: {str(err)[:120]}")
-                errs[m].append(math.nan)
-                flags[m] = " (failed)"
-                continue
-            errs[m].append(_pair_error_um(cal, X, uv))
-            if not conv:
-                flags[m] = " (not converged)"
-    def median(v):
-        v = np.asarray(v, dtype=float)
-        return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
+                print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: failed: {str(err)[:160]}")
+                errs[m]["covered"].append(math.nan)
+                errs[m]["full"].append(math.nan)
+                flags[m] = "failed"
+                rec.update(error=str(err)[:300])
+            else:
+                ec = _pair_error_um(cal, X[inside], uv[inside])
+                ef = _pair_error_um(cal, X, uv)
+                errs[m]["covered"].append(ec)
+                errs[m]["full"].append(ef)
+                if not conv:
+                    flags[m] = flags[m] or "not converged"
+                rec.update(covered_um=ec, full_um=ef, converged=conv, time_s=dt,
+                           reproj_px=cal.reprojection_rms_px)  # fmt: skip
+                pupil = getattr(cal.camera, "pupil", None)
+                if pupil is not None:
+                    rec.update(pupil_mm=[float(c) for c in np.asarray(pupil)])
+            print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: "
+                  + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                              for k, v in rec.items() if k not in ("lens", "mag", "model",
+                                                                   "seed", "imaging")),
+                  flush=True)  # fmt: skip
+            if log:
+                with open(log, "a") as fh:
+                    fh.write(json.dumps(rec) + "\n")
+    return {
+        m: (_median(errs[m]["covered"]), _median(errs[m]["full"]), flags[m]) for m in models
+    }
 
-    return {m: (median(errs[m]), flags[m]) for m in models}
 
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="tessar, ×0.5, one seed")
-    ap.add_argument("--lenses", default=",".join(LENSES))
-    ap.add_argument("--mags", default=",".join(f"{m:g}" for m in MAGS))
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--models", default=",".join(MODELS), help="calibrate(model=) names")
-    ap.add_argument("--imaging", choices=("centroid", "chief"), default="centroid")
-    ap.add_argument("--f-number", type=float, default=None, help="default: each lens's own")
-    ap.add_argument("--rings", type=int, default=8, help="pupil quadrature rings")
-    args = ap.parse_args(argv)
+def table(args) -> None:
+    """Run the lens × magnification table (arguments of `main`) and print it."""
     lenses = ["tessar"] if args.quick else args.lenses.split(",")
     mags = [0.5] if args.quick else [float(m) for m in args.mags.split(",")]
     seeds = [0] if args.quick else list(range(args.seeds))
@@ -146,24 +212,55 @@ def main(argv=None) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     print(
         f"{len(lenses)} lens(es) × {len(mags)} magnification(s), seeds {seeds}, imaging "
-        f"{args.imaging}, {args.rings} rings; load average {load:.1f}\n"
+        f"{args.imaging}, {args.rings} rings; load average {load:.1f}; "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n"
     )
-    hdr = f"{'lens':<14} {'|β|':>4} " + " ".join(f"{m + ' µm':>16}" for m in models)
-    if "thick-lens" in models and "opencv" in models:
-        hdr += f" {'thick/opencv':>12}"
-    print(hdr + f" {'time s':>7}")
-    print("-" * (len(hdr) + 8))
+    ref = "opencv" if "opencv" in models else None
+    cols = "".join(f" {m[:22] + ' µm':>25}" for m in models)
+    ratios = "".join(f" {m[:12] + '/cv':>15}" for m in models if ref and m != ref)
+    hdr = f"{'lens':<14} {'|β|':>4}{cols}{ratios} {'time s':>7}"
+    print("covered part of the laser plane (full-sensor grid in brackets); medians over seeds")
+    print(hdr)
+    print("-" * len(hdr))
+    any_flag = False
     for name in lenses:
         for mag in mags:
             t0 = time.perf_counter()
-            res = run_world(name, mag, seeds, models, args.imaging, args.f_number, args.rings)
-            row = f"{name:<14} {mag:>4g} " + " ".join(
-                f"{res[m][0]:>16.4f}" if not res[m][1] else f"{res[m][0]:>8.4f}{res[m][1]:>8.8}"
-                for m in models
-            )
-            if "thick-lens" in res and "opencv" in res:
-                row += f" {res['thick-lens'][0] / res['opencv'][0]:>12.2f}"
+            res = run_world(name, mag, seeds, models, args.imaging, args.f_number,
+                            args.rings, args.cache, args.json)  # fmt: skip
+            row = f"{name:<14} {mag:>4g}"
+            for m in models:
+                cov, full, flag = res[m]
+                cell = f"{cov:.3f} [{full:.2f}]" + ("*" if flag else "")
+                any_flag = any_flag or bool(flag)
+                row += f" {cell:>25}"
+            for m in models:
+                if ref and m != ref:
+                    row += f" {res[m][0] / res[ref][0]:>15.2f}"
             print(row + f" {time.perf_counter() - t0:>7.0f}", flush=True)
+    if any_flag:
+        print("* a seed did not converge or failed (see the lines above)")
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The table's options other than `--quick` and `--lenses` (shared with
+    `benchmarks/calibrate.py --lenses`)."""
+    ap.add_argument("--mags", default=",".join(f"{m:g}" for m in MAGS))
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--models", default=",".join(MODELS), help="calibrate(model=) names")
+    ap.add_argument("--imaging", choices=("centroid", "chief"), default="centroid")
+    ap.add_argument("--f-number", type=float, default=None, help="default: each lens's own")
+    ap.add_argument("--rings", type=int, default=8, help="pupil quadrature rings")
+    ap.add_argument("--cache", metavar="DIR", help="keep/reuse each seed's observations here")
+    ap.add_argument("--json", metavar="FILE", help="append one JSON line per calibration")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="tessar, ×0.5, one seed")
+    ap.add_argument("--lenses", default=",".join(LENSES), help="comma-separated lens names")
+    add_arguments(ap)
+    table(ap.parse_args(argv))
 
 
 if __name__ == "__main__":
