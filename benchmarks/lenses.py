@@ -143,7 +143,22 @@ def _median(v) -> float:
     return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
 
 
-def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=None, log=None):
+def _logged(log, rec):
+    """The last record of `log` (JSON lines) for the same lens, |β|, seed, imaging and model."""
+    if not log or not os.path.exists(log):
+        return None
+    key = ("lens", "mag", "seed", "imaging", "model")
+    found = None
+    with open(log) as fh:
+        for line in fh:
+            r = json.loads(line)
+            if all(r.get(k) == rec[k] for k in key):
+                found = r
+    return found
+
+
+def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=None, log=None,
+              resume=False):  # fmt: skip
     """One lens × magnification: per model the medians over the seeds of the error on the
     covered part of the laser plane and on the full-sensor grid, and the flags."""
     lens = load_lens(lens_name)
@@ -169,6 +184,15 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
         for m in models:
             rec = dict(lens=lens_tag, mag=mag, seed=seed, imaging=imaging, model=m,
                        n_covered=int(inside.sum()), n_full=len(X))  # fmt: skip
+            done = _logged(log, rec) if resume else None
+            if done is not None:
+                errs[m]["covered"].append(done.get("covered_um", math.nan))
+                errs[m]["full"].append(done.get("full_um", math.nan))
+                if "error" in done or not done.get("converged", True):
+                    flags[m] = "failed" if "error" in done else "not converged"
+                print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: from {log}: "
+                      f"covered_um={done.get('covered_um')}", flush=True)  # fmt: skip
+                continue
             try:
                 cal, conv, dt = _calibrate(obs, m)
             except Exception as err:  # noqa: BLE001 - a benchmark cell, not a library path
@@ -227,7 +251,7 @@ def table(args) -> None:
         for mag in mags:
             t0 = time.perf_counter()
             res = run_world(name, mag, seeds, models, args.imaging, args.f_number,
-                            args.rings, args.cache, args.json)  # fmt: skip
+                            args.rings, args.cache, args.json, args.resume)  # fmt: skip
             row = f"{name:<14} {mag:>4g}"
             for m in models:
                 cov, full, flag = res[m]
@@ -253,6 +277,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--rings", type=int, default=8, help="pupil quadrature rings")
     ap.add_argument("--cache", metavar="DIR", help="keep/reuse each seed's observations here")
     ap.add_argument("--json", metavar="FILE", help="append one JSON line per calibration")
+    ap.add_argument("--resume", action="store_true",
+                    help="take calibrations already in --json FILE from it")  # fmt: skip
 
 
 def main(argv=None) -> None:
