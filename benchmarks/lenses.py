@@ -1,7 +1,9 @@
 """Lens × magnification benchmark on pupil-integrated, ray-traced worlds.
 
     python benchmarks/lenses.py [--quick] [--lenses tessar,double-gauss] [--mags 0.5,1,2]
-                                [--seeds 3] [--models thick-lens,opencv] [--imaging centroid]
+                                [--seeds 3] [--models thick-lens,thick-lens-noncentral,opencv]
+                                [--imaging centroid] [--cache DIR] [--json FILE [--resume]]
+    python benchmarks/calibrate.py --lenses [LIST] [--quick] ...   (the same table)
 
 For each shipped lens (singlet, achromat, double-gauss, tessar) and magnification |β|
 (0.5, 1, 2) a rig is built (`build_rig`: 2448 × 2048 px at 3.45 µm, laser plane at 60°
@@ -9,15 +11,22 @@ to the axis, the sensor refocused on it through the real lens) and observed with
 views of 11 × 8 corners (0.03 px corner noise, 0.05 px stripe noise) by pupil-integrated
 imaging (`imaging="centroid"`: each pixel is the centroid of the bundle filling the
 stop, vignetting included; the lens's own f-number unless `--f-number`). Each data set
-is calibrated with every model in `--models` (default: scheimflux's thick lens with its
-default options, and OpenCV's tilted model, `model="opencv", opencv_flags="tilted"`);
-another model name (e.g. a non-central camera) is passed through to `calibrate(model=)`.
+is calibrated with every model in `--models` (default: scheimflux's central thick lens
+and its non-central thick lens, both with their default options, and OpenCV's tilted
+model, `model="opencv", opencv_flags="tilted"`); `CONFIGS` names other variants, and
+any other name is passed through to `calibrate(model=)`.
 
 Error: laser-plane points on a 16 × 13 grid over 5 … 95 % of the sensor, imaged by the
 same tracer as the data (pupil centroids; chief rays with `--imaging chief`; noise-free),
 reconstructed with each calibration (`stripe_to_camera`); the RMS over all pairs of the
-error of their distances, in µm, median over the seeds. Points outside the boards'
-coverage are included (that is where the models extrapolate). `--quick`: tessar, ×0.5, one seed.
+error of their distances, in µm, median over the seeds. Two figures: over the points
+inside the convex hull of all detected corners ("covered": where the calibration has
+data; the table's main number) and over the whole grid (in brackets: the sensor's
+corners, where every model extrapolates its distortion polynomial). A calibration that
+fails is NaN, never left out silently. `--quick`: tessar, ×0.5, one seed. `--cache`
+keeps each seed's observations and the grid; `--json` logs one line per calibration, and
+`--resume` takes the calibrations already logged there (so parts of the table can run
+in separate processes and be joined).
 """
 
 from __future__ import annotations
