@@ -281,8 +281,11 @@ def table(args) -> None:
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n"
     )
     ref = "opencv" if "opencv" in models else None
-    cols = "".join(f" {m[:22] + ' µm':>25}" for m in models)
-    ratios = "".join(f" {m[:12] + '/cv':>15}" for m in models if ref and m != ref)
+    label = {"thick-lens": "central", "thick-lens-noncentral": "non-central",
+             RELEASED_TILT: "released tilt"}  # fmt: skip
+    lab = [label.get(m, m)[:20] for m in models]
+    cols = "".join(f" {x + ' µm':>25}" for x in lab)
+    ratios = "".join(f" {x[:12] + ' / cv':>17}" for m, x in zip(models, lab) if ref and m != ref)
     hdr = f"{'lens':<14} {'|β|':>4}{cols}{ratios} {'time s':>7}"
     print("covered part of the laser plane (full-sensor grid in brackets); medians over seeds")
     print(hdr)
@@ -301,7 +304,7 @@ def table(args) -> None:
                 row += f" {cell:>25}"
             for m in models:
                 if ref and m != ref:
-                    row += f" {res[m][0] / res[ref][0]:>15.2f}"
+                    row += f" {res[m][0] / res[ref][0]:>17.2f}"
             print(row + f" {time.perf_counter() - t0:>7.0f}", flush=True)
     if any_flag:
         print("* a seed did not converge or failed (see the lines above)")
