@@ -2,6 +2,7 @@
 
     python benchmarks/calibrate.py [--views 15] [--seed 0] [--quick]
     python benchmarks/calibrate.py --cold-start [--views 15]
+    python benchmarks/calibrate.py --lenses [tessar,singlet,...] [--quick] [--seeds 3]
 
 Simulates the paper's ×1.5 Scheimpflug rig (`paper_rig()`: a real double-Gauss lens,
 1600 × 1200 px, 4.4 µm), 11 × 8 boards of 0.3 mm squares, 0.03 px corner noise and
@@ -19,6 +20,11 @@ one process, per compiled program the time spent tracing, lowering to MLIR and i
 XLA's compiler, and those phases in a warm process (exported programs and compilation
 cache filled) — beside OpenCV's `calibrateCamera(CALIB_TILTED_MODEL)` on the same
 corners, in the same run.
+
+`--lenses` runs the lens × magnification table instead (`benchmarks/lenses.py`: each
+shipped lens × |β| 0.5, 1, 2 on pupil-integrated ray-traced data; the central and the
+non-central thick lens beside OpenCV's tilted model; pairwise-distance error in the laser
+plane against the tracer's truth, median of 3 seeds); `--quick` is its Tessar ×0.5 row.
 """
 
 from __future__ import annotations
@@ -314,6 +320,17 @@ def cold_start(views: int = 15, baseline: str | None = None, obs_path: str | Non
           f"{_flag(t_warm <= t_cv)} ({t_warm / t_cv:.1f}×)")
 
 
+def _lens_table():
+    """`benchmarks/lenses.py` as a module (it lives beside this script)."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "lenses.py")
+    spec = importlib.util.spec_from_file_location("_scheimflux_bench_lenses", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def _flag(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
@@ -334,7 +351,19 @@ def main(argv=None) -> None:
         "--obs", metavar="OBS.json", help="with --cold-start: these observations (default: "
         "`scheimflux simulate --views VIEWS`)"
     )
+    ap.add_argument(
+        "--lenses", nargs="?", const="all", metavar="LIST",
+        help="the lens × magnification table (benchmarks/lenses.py) for these lenses "
+        "(default all); with --quick its Tessar ×0.5 row",
+    )  # fmt: skip
+    _lens_table().add_arguments(ap)
     args = ap.parse_args(argv)
+    if args.lenses is not None:
+        table = _lens_table()
+        if args.lenses == "all":
+            args.lenses = ",".join(table.LENSES)
+        table.table(args)
+        return
     if args.profile:
         _profile(args.profile)
         return

@@ -257,3 +257,73 @@ def test_noncentral_recovers_the_ray_tracer_better_than_the_central_model():
     assert all(f.converged for f in nc.fits.values())
     assert nc.reprojection_rms_px < central.reprojection_rms_px
     assert e_nc < 0.5 * e_c, (e_c, e_nc)  # measured: central 0.609, non-central 0.164 µm
+
+
+def _covered_laser_grid(rig, obs, sampling, n=(16, 13)):
+    """Laser-plane truth points and their pupil-integrated pixels (the tracer's, not a
+    model's) on a grid over the sensor, kept where the boards' corners cover the image
+    (inside the convex hull of every detected corner: no model is asked to extrapolate)."""
+    import cv2
+
+    from scheimflux.simulate._pupil import pupil_points
+
+    w, h = rig.sensor_size
+    u = np.linspace(0.05, 0.95, n[0]) * (w - 1)
+    v = np.linspace(0.05, 0.95, n[1]) * (h - 1)
+    g = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+    X = np.asarray(rig.laser_points(jnp.asarray(g)))
+    uv, ok, _, _ = pupil_points(rig, X, sampling)
+    c = np.concatenate([np.asarray(v.corners_px) for v in obs.views])
+    hull = cv2.convexHull(c[np.all(np.isfinite(c), axis=1)].astype(np.float32))
+    inside = np.array([ok[k] and cv2.pointPolygonTest(hull, (float(uv[k, 0]), float(uv[k, 1])),
+                       False) >= 0 for k in range(len(X))])  # fmt: skip
+    return X[inside], uv[inside]
+
+
+def _grid_distance_rms_um(cal, X, uv):
+    P = np.asarray(sf.stripe_to_camera(cal.camera, cal.plane, jnp.asarray(uv)).points)
+    assert np.all(np.isfinite(P))
+    i, j = np.triu_indices(len(X), 1)
+    d = np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(X[i] - X[j], axis=1)
+    return float(np.sqrt(np.mean(d**2)) * 1e3)
+
+
+# slow: ~1 min of pupil tracing and 3-5 min of calibration on a loaded 2-core machine
+@pytest.mark.slow
+def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
+    # The shipped 8 mm f/4.5 Tessar at ×0.5 (25° half-field), imaged as a sensor sees it:
+    # each pixel the centroid of the bundle filling the stop (coma, vignetting). The
+    # benchmark's scene (benchmarks/lenses.py), noise-free so that what is left is model
+    # bias. Truth: laser-plane points traced by the same pupil-integrating tracer,
+    # where the boards cover the image, never the calibrated model's own projections.
+    from scheimflux.calibrate import calibrate
+    from scheimflux.simulate import build_rig, load_lens, simulate_observations
+    from scheimflux.simulate._pupil import pupil_grid
+    from scheimflux.targets import Checkerboard
+
+    rig = build_rig(load_lens("tessar"), 0.5, sensor=(2448, 2048),
+                    pixel_pitch_mm=(0.00345, 0.00345))  # fmt: skip
+    sampling = pupil_grid(8)
+    square = round(0.65 * 2448 * 0.00345 / 0.5 / 12.0, 3)
+    obs, _ = simulate_observations(
+        rig, Checkerboard(11, 8, square), n_views=15, corner_noise_px=0.0,
+        stripe_noise_px=0.0, stage_scan=False, seed=0, imaging="centroid", pupil=sampling,
+    )  # fmt: skip
+    X, uv = _covered_laser_grid(rig, obs, sampling)
+    assert len(X) > 100
+    central = calibrate(obs, model="thick-lens", throw=False)
+    nc = calibrate(obs, model="thick-lens-noncentral", throw=False)
+    e_c, e_nc = _grid_distance_rms_um(central, X, uv), _grid_distance_rms_um(nc, X, uv)
+    print(f"pairwise-distance RMS over {len(X)} covered laser-plane points: central "
+          f"{e_c:.3f} um, non-central {e_nc:.3f} um; pupil {nc.camera.pupil} mm")  # fmt: skip
+    assert isinstance(nc.camera, ThickLensNonCentral)
+    assert all(f.converged for f in nc.fits.values())
+    # Measured (2026-12-02, benchmark grid 16 × 13, 154 covered points): central 0.521 µm,
+    # non-central 0.245 µm (ratio 0.47); reprojection 0.0170 vs 0.0075 px. The data are
+    # noise-free and the solve deterministic, so what moves these is a change of the
+    # solver's path (another local optimum, other stopping): the bounds leave ~35 % of
+    # room on the ratio and ~20 % on the central error, and still fail if the pupil term
+    # stops helping (ratio → 1) or the data lose their pupil aberration (central ≪ 0.4).
+    assert e_c > 0.4, e_c
+    assert e_nc < 0.65 * e_c, (e_c, e_nc)
+    assert nc.reprojection_rms_px < 0.7 * central.reprojection_rms_px
