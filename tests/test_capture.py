@@ -160,25 +160,36 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     assert obs.pixel_pitch_mm is None
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a ChArUco board with an unclipped laser line (peak 0.3-0.6 of full scale): the "
-    "line shows only on the white strips around the markers (black albedo ~0.04 leaves it "
-    "~6 grey levels there), and the extractor returns no centre (grey and colour, PNG); "
-    "the same line clipped is found. Checkerboard and circle grid are found at this "
-    "exposure. The capture refuses the view's line ('no laser line found'), not a wrong one",
-)
+# The line at peak 0.3 of full scale (grey): 6 grey levels over the black print, its
+# second derivative below the extractor's 8-noise-std threshold there; colour: 155
+# centres (30 % of the line), one 0.64 px off (noise on the weak red channel over black).
+_WEAK_LINE = "peak 0.3: the line over the black print is below the extractor's noise threshold"
+
+
+@pytest.mark.parametrize("peak", [0.6, 0.3])
 @pytest.mark.parametrize("colour", [False, True], ids=["grey", "colour"])
-def test_charuco_unclipped_line_is_found(cam, tmp_path, colour):
+def test_charuco_unclipped_line_is_found(cam, tmp_path, request, colour, peak):
+    """A ChArUco board with an unclipped line and no laser-off image: the line shows
+    over the black print only a few grey levels high, the markers' white bars and
+    frames are ridges many times brighter in both directions. The line is found as the
+    longest continuous narrow ridge (`stripe/_longridge.py`) and every centre kept is on
+    the renderer's exact line: none on a marker bar."""
+    if peak == 0.3:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=_WEAK_LINE))
     target = CharucoBoard(8, 6, 0.2, 0.14)
     rig, truth, _ = _scene(cam, target)
     write_scene_images(tmp_path, rig, target, truth, layout="single", colour=colour,
-                       laser_peak=0.6, seed=1)  # fmt: skip
+                       laser_peak=peak, seed=1)  # fmt: skip
     obs, report = detect_captures(tmp_path, target)
     line = truth.stripe_px[0]
     st = obs.views[0].stripe_px
     d = _near_line(st, line)
-    assert len(st) > 0.3 * np.ptp(line[:, 0]) and (d < 0.5).mean() > 0.99, (len(st), d)
+    # a third of the line's span at least (the line is refused where a bit border of a
+    # marker runs along it, and dims 25-fold over the black print); every centre within
+    # 0.5 px (a marker bar is >= 3 px from the line), the RMS noise-limited: about
+    # 0.5 noise / peak ~ 0.05 px over the black print (1.2 levels over 12), 0.1 bound
+    assert len(st) > 0.3 * np.ptp(line[:, 0]), len(st)
+    assert d.max() < 0.5 and np.sqrt(np.mean(d**2)) < 0.1, (d.max(), np.sqrt(np.mean(d**2)))
 
 
 def _scene_at(cam, target, frac, rot=183.0):
