@@ -50,6 +50,14 @@ ALBEDO_EVEN_MAX = 0.5
 _HIGH = 2.0
 
 
+def _min_line(width: float, min_segment: int | None, n_scan: int) -> int:
+    """Scan lines that the longest segment (or a long-ridge path) must span for the
+    frame to hold a line: three minimum segments, or `MIN_LINE_FRACTION` of the scan
+    lines."""
+    min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    return max(3 * min_pts, int(MIN_LINE_FRACTION * n_scan))
+
+
 def _empty(n: int, orientation: str, method: str, **extra) -> StripeResult:
     return StripeResult(
         uv=np.full((n, 2), np.nan),
@@ -343,7 +351,7 @@ def _extract_track(
             mask_small=mask_small,
         )
     else:
-        coarse = path_track(track, width, shape[0])
+        coarse = path_track(track, width, shape[0], _min_line(width, min_segment, shape[1]))
     if not coarse.found:
         return _empty(shape[1], orientation, method, **extra), retry
 
@@ -514,6 +522,7 @@ def _extract_track(
     valid &= consistent(y, valid)
     jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
     min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    min_line = _min_line(width, min_segment, shape[1])
     sigma_s = max(width / (2.0 * math.sqrt(3.0)), 0.7)
     segment, valid = link_segments(
         y,
@@ -524,7 +533,9 @@ def _extract_track(
         min_points=min_pts,
         high=_HIGH * thr,
         trim=int(math.ceil(2.0 * sigma_s)),
-        min_line=max(3 * min_pts, int(MIN_LINE_FRACTION * shape[1])),
+        # a long-ridge track has shown the line already (`path_track`): each segment on
+        # it is judged alone (the print can cut the line into pieces shorter than this)
+        min_line=min_pts if track is not None else min_line,
     )
     saturated &= valid
     y = np.where(valid, y_fit, np.nan)

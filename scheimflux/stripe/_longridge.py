@@ -146,14 +146,17 @@ def long_ridge_track(
     return name, path
 
 
-def path_track(path: LongRidge, width: float, n_rows: int) -> CoarseTrack:
+def path_track(path: LongRidge, width: float, n_rows: int, min_line: int) -> CoarseTrack:
     """The path as the coarse track of the sub-pixel pass: its rows (held constant past
     its ends), support on the scan lines it spans, and a tolerance of one line width
-    (the path runs on the ridge's top pixel, or next to it)."""
+    (the path runs on the ridge's top pixel, or next to it). No track (`found` False)
+    unless the path spans `min_line` scan lines and holds a narrow-ridge pixel on at
+    least half as many (its score; the frame's test for a line, as the longest segment
+    of centres is without a path)."""
     on = np.isfinite(path.rows)
-    if not on.any():
-        n = path.rows.size
+    n = path.rows.size
+    if path.length < min_line or path.score < 0.5 * min_line:
         return CoarseTrack(np.zeros(n), np.zeros(n, bool), width, False)
-    cols = np.arange(path.rows.size, dtype=np.float64)
+    cols = np.arange(n, dtype=np.float64)
     centre = np.clip(np.interp(cols, cols[on], path.rows[on]), 0.0, n_rows - 1.0)
     return CoarseTrack(centre, on, max(float(width), 4.0), True)
