@@ -119,12 +119,15 @@ def test_saturated_core_keeps_its_centre(peak):
         assert s.coverage >= 0.55 and s.rms <= 0.07 and abs(s.bias) <= 0.02, (peak, s)
         assert res.saturated[res.valid].mean() > 0.5
     s = score(extract_stripe(on), truth)
-    # without the laser-off frame: 73 % of the line at peak 2.5 (0.072 px RMS), 46 % at
-    # 10 (0.14 px), none at 100 (clipped on the black squares too: a plateau beside a
-    # checker edge cannot be told from one shifted by it), never a false centre
+    # without the laser-off frame: 56 % of the line at peak 2.5 at 0.036 px RMS (the
+    # rim test on every clipped scan line of a grey signal; without it on the ones the
+    # first pass accepted, 73 % at 0.072 px), none at 100 (clipped on the black squares
+    # too: a plateau beside a checker edge cannot be told from one shifted by it), never
+    # a false centre; 0.05 px: the plain surface's 0.06 bound less the shifted plateaus
+    # the rim test now refuses
     assert s.false_rate == 0.0 and s.max_error < 1.0, (peak, s)
     if peak == 2.5:
-        assert s.coverage >= 0.6 and s.rms <= 0.1, s
+        assert s.coverage >= 0.5 and s.rms <= 0.05, s
 
 
 @pytest.mark.parametrize("quality", [95, 85])

@@ -21,6 +21,7 @@ from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._laser import (
     JPEG_BLOCK_PX,
+    clipped_pixels,
     laser_in_board,
     laser_removed,
     near_laser,
@@ -205,6 +206,13 @@ def line_and_points(
             w = max(w, float(stripe_width_px))
         hit |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
                           extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
+    if grey:
+        # a clipped line's own pixels, where the extractor refused its centres (a
+        # plateau over checker edges): the points next to them move as much
+        clip = clipped_pixels(image, mask)
+        if len(clip):
+            w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
+            hit |= near_laser(target, corners, clip, w5, join=False)
     if hit.any():
         out.corners = corners = corners.copy()
         corners[hit] = np.nan

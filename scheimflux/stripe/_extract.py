@@ -449,23 +449,33 @@ def _extract_track(
             asym_max = ASYMMETRY_MAX * min(profile_std(_DEFAULT_WIDTH) / profile_std(wide), 1.0)
             even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
             if off_level is None:
-                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims,
-                # and for the scan lines the first pass refused, no albedo change along
-                # the line nearby either (a line along a narrow white strip between black
-                # ones, as on a ChArUco board, has a symmetric plateau 1 px off the line,
-                # with black on both sides). The ones the first pass accepted keep the
-                # plateau pass's own tests: the line is kept in images of a board where
-                # albedo edges lie near it everywhere (a grey or colour single image of
-                # board and line, where the capture needs it to drop the corners near it).
+                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims
+                # (every clipped scan line), and for the scan lines the first pass
+                # refused, no albedo change along the line nearby either (a line along a
+                # narrow white strip between black ones, as on a ChArUco board, has a
+                # symmetric plateau 1 px off the line, with black on both sides). On a
+                # grey signal the rim test applies to the ones the first pass accepted
+                # too (with the plateau pass's own tests alone they were 0.115 px RMS off
+                # the exact line on the paper rig's grey single checkerboard views; with
+                # it 80 % of them are kept, at 0.044 px); the capture finds the points
+                # next to a clipped line from its clipped pixels (`clipped_pixels` in
+                # `capture/_laser.py`), not from these centres.
                 rims, left, right = rims_even(
                     gather, flat_sat, lines.y, plateau, lines.ny, 2.0 * width,
                     max(3.0 * noise, RIM_FLOOR * sat_level), shape[0],
                 )  # fmt: skip
                 reach = int(math.ceil(np.median(plateau[saturated]) + 4.0 * width))
-                even &= rims & plain_surroundings(
+                plain = plain_surroundings(
                     left, right, saturated & np.isfinite(lines.y), reach, 3.0 * noise
                 )
-                even |= first_pass
+                if channel == "grey":
+                    even &= rims & (first_pass | plain)
+                else:
+                    # colour (X minus the others): the first pass's centres keep the
+                    # plateau pass's own tests, as before (a colour JPEG of a ChArUco
+                    # board keeps its clipped line at 0.050 px RMS so, and loses it to
+                    # the rim test: the JPEG's chroma puts laser light beside the line)
+                    even = (even & rims & plain) | first_pass
             else:  # the laser-off image at the rims themselves (2 px in to 2 px out)
                 even &= rims_even(
                     gather, off_level.reshape(-1), lines.y, plateau, lines.ny, -2.0,
@@ -511,7 +521,7 @@ def _extract_track(
             max(3.0 * estimate_noise(others), RIM_FLOOR * level), shape[0],
             ratio_max=ALBEDO_EVEN_MAX,
         )  # fmt: skip
-        valid &= even
+        valid &= even | saturated
     x = np.arange(shape[1], dtype=np.float64)
     y = np.where(valid, y_fit, np.nan)
     if roi is not None and valid.any():
