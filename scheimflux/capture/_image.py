@@ -99,6 +99,16 @@ class ImageLine:
     reason: str = ""
 
 
+def _pitch_px(corners: np.ndarray) -> float:
+    """The median distance (px) from each found point to its nearest neighbour."""
+    uv = corners[np.all(np.isfinite(corners), axis=1)]
+    if len(uv) < 2:
+        return 0.0
+    d = np.linalg.norm(uv[:, None] - uv[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
 def find_target(image, off, target: Target, *, single: bool, min_points: int,
                 mirrored: bool) -> tuple[DetectionResult, np.ndarray | None, str]:  # fmt: skip
     """Detect the target in one image of target (and perhaps laser line).
@@ -209,7 +219,9 @@ def line_and_points(
     if grey:
         # a clipped line's own pixels, where the extractor refused its centres (a
         # plateau over checker edges): the points next to them move as much
-        clip = clipped_pixels(image, mask)
+        # (a line: no wider than half a pitch of the points; white squares that clip
+        # are no line)
+        clip = clipped_pixels(image, mask, 0.25 * _pitch_px(corners))
         if len(clip):
             w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
             hit |= near_laser(target, corners, clip, w5, join=False)

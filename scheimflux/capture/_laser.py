@@ -239,18 +239,28 @@ def _dense_line(stripe_uv: np.ndarray, orientation: str) -> np.ndarray:
     return np.concatenate([out, uv])
 
 
-def clipped_pixels(image: Any, mask: np.ndarray) -> np.ndarray:
+def clipped_pixels(image: Any, mask: np.ndarray, max_halfwidth_px: float) -> np.ndarray:
     """`(N, 2)` `(u, v)` of the pixels of a grey integer image at its clip level (its
-    maximum, where at least `_MIN_CLIPPED` pixels inside `mask` reach it), inside
-    `mask`; none otherwise. In a grey single image these are the laser line's own
-    pixels (the board reflects the room light below full scale): they show where the
-    line is even where the extractor refuses its centres (a clipped plateau over
-    checker edges), so that the points next to it can be dropped."""
+    maximum, where at least `_MIN_CLIPPED` pixels inside `mask` reach it) inside
+    `mask`, in connected regions no wider than a line: at most `max_halfwidth_px` from
+    their edge (a board whose white squares clip is no line); none otherwise. In a grey
+    single image these are a clipped laser line's own pixels: they show where the line
+    is even where the extractor refuses its centres (a clipped plateau over checker
+    edges), so that the points next to it can be dropped."""
     img = np.asarray(image)
     if img.ndim != 2 or not np.issubdtype(img.dtype, np.integer) or not np.any(mask):
         return np.zeros((0, 2))
     top = img[mask].max()
-    v, u = np.nonzero((img >= top) & mask)
+    clip = ((img >= top) & mask).astype(np.uint8)
+    if int(clip.sum()) < _MIN_CLIPPED:
+        return np.zeros((0, 2))
+    n, labels = cv2.connectedComponents(clip, connectivity=8)
+    inner = cv2.distanceTransform(clip, cv2.DIST_L2, 3)
+    widest = np.zeros(n)
+    np.maximum.at(widest, labels.reshape(-1), inner.reshape(-1))
+    thin = widest <= max_halfwidth_px
+    thin[0] = False  # the background label
+    v, u = np.nonzero(thin[labels])
     if len(u) < _MIN_CLIPPED:
         return np.zeros((0, 2))
     return np.stack([u, v], axis=1).astype(np.float64)

@@ -487,7 +487,9 @@ def _extract_track(
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
     # field changes it by a few per cent); a profile much narrower or wider than the
     # line's median is a distorted one (a step under it, a glint beside it).
-    widths = lines.width[valid & ~saturated & np.isfinite(lines.width)]
+    # (a width of 0 is no measurement: where a profile gives none, e.g. a line over the
+    # print of a ChArUco board found by its long-ridge track, the median must not be 0)
+    widths = lines.width[valid & ~saturated & np.isfinite(lines.width) & (lines.width > 0)]
     med = float(np.median(widths)) if widths.size >= 8 else math.nan
     if widths.size >= 8 and method == "steger":
         wv = np.nan_to_num(lines.width, nan=0.0)
