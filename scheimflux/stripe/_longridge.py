@@ -113,8 +113,8 @@ def best_path(evidence: np.ndarray) -> LongRidge:
             break
         i, j = i + s, j - 1
     start = j if j >= 0 else 0
-    # drop the path's unsupported tail at its start (it begins on evidence by
-    # construction, and ends on it: the score peaks there)
+    # (the path begins on a narrow-ridge pixel by construction, and ends on one: the
+    # score peaks there)
     return LongRidge(rows, best, end - start + 1 if best > 0 else 0)
 
 
