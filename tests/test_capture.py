@@ -714,10 +714,6 @@ E2E_SHORT = {
     "746 centres all on the line at 0.044 px RMS, 3-D 0.41 um, but the plane is 0.030 deg "
     "off (bound 0.01): the clipped line is kept in 3 of the 9 views only (its plateau "
     "over checker edges is refused in the others)",
-    ("acircles", "single-grey"): "grey single image of an asymmetric circle grid, no "
-    "laser-off image: converged (0.0046 px), stripe 99.8 % on the line at 0.053 px, plane "
-    "0.0025 deg, 3-D 0.038 um, 7/7 views; but a dot is 1.39 px off its truth (floor "
-    "0.053 px, inflated by it; calibrate's rejection pass left it out): not established",
 }
 
 
