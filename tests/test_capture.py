@@ -160,25 +160,42 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     assert obs.pixel_pitch_mm is None
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a ChArUco board with an unclipped laser line (peak 0.3-0.6 of full scale): the "
-    "line shows only on the white strips around the markers (black albedo ~0.04 leaves it "
-    "~6 grey levels there), and the extractor returns no centre (grey and colour, PNG); "
-    "the same line clipped is found. Checkerboard and circle grid are found at this "
-    "exposure. The capture refuses the view's line ('no laser line found'), not a wrong one",
-)
+# The line at peak 0.3 of full scale (grey): 6 grey levels over the black print, its
+# second derivative below the extractor's 8-noise-std threshold there; colour: 155
+# centres (30 % of the line), one 0.64 px off (noise on the weak red channel over black).
+_WEAK_LINE = "peak 0.3: the line over the black print is below the extractor's noise threshold"
+
+
+@pytest.mark.parametrize(
+    "peak, rot",
+    [(0.6, 183.0), pytest.param(0.6, 140.0, marks=pytest.mark.slow),
+     pytest.param(0.3, 183.0, marks=pytest.mark.slow)],
+    ids=["peak0.6", "peak0.6-line43deg", "peak0.3"],
+)  # fmt: skip
 @pytest.mark.parametrize("colour", [False, True], ids=["grey", "colour"])
-def test_charuco_unclipped_line_is_found(cam, tmp_path, colour):
+def test_charuco_unclipped_line_is_found(cam, tmp_path, request, colour, peak, rot):
+    """A ChArUco board with an unclipped line and no laser-off image: the line shows
+    over the black print only a few grey levels high, the markers' white bars and
+    frames are ridges many times brighter in both directions. The line is found as the
+    longest continuous narrow ridge (`stripe/_longridge.py`) and every centre kept is on
+    the renderer's exact line: none on a marker bar."""
+    if peak == 0.3:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=_WEAK_LINE))
     target = CharucoBoard(8, 6, 0.2, 0.14)
-    rig, truth, _ = _scene(cam, target)
+    rig, truth, _ = _scene(cam, target, rots=(rot,))  # rot 140: the line at ~43 deg
     write_scene_images(tmp_path, rig, target, truth, layout="single", colour=colour,
-                       laser_peak=0.6, seed=1)  # fmt: skip
+                       laser_peak=peak, seed=1)  # fmt: skip
     obs, report = detect_captures(tmp_path, target)
     line = truth.stripe_px[0]
     st = obs.views[0].stripe_px
     d = _near_line(st, line)
-    assert len(st) > 0.3 * np.ptp(line[:, 0]) and (d < 0.5).mean() > 0.99, (len(st), d)
+    # a third of the line's span (along its longer image axis) at least (the line is
+    # refused where a bit border of a marker runs along it, and dims 25-fold over the
+    # black print); every centre within
+    # 0.5 px (a marker bar is >= 3 px from the line), the RMS noise-limited: about
+    # 0.5 noise / peak ~ 0.05 px over the black print (1.2 levels over 12), 0.1 bound
+    assert len(st) > 0.3 * np.ptp(line, axis=0).max(), len(st)
+    assert d.max() < 0.5 and np.sqrt(np.mean(d**2)) < 0.1, (d.max(), np.sqrt(np.mean(d**2)))
 
 
 def _scene_at(cam, target, frac, rot=183.0):
@@ -693,17 +710,10 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
 # cases measured short of the bounds below (docs/capture.md's table)
 E2E_SHORT = {
     ("checkerboard", "single-grey"): "grey single image of a checkerboard, no laser-off "
-    "image: converged at the floor (0.0212 / 0.0229 px), but the stripe centres on the "
-    "line are 0.124 px RMS off it (bound 0.1; the grey line over the checker squares, "
-    "the extractor's), worst corner 0.21 px, plane 0.039 deg, 3-D 0.53 um RMS",
-    ("charuco", "single-grey"): "grey single image of a ChArUco board, no laser-off "
-    "image: converged at the floor (0.0246 / 0.0262 px), 15/15 views, plane 0.0052 deg, "
-    "3-D 0.082 um, but the stripe centres on the line are 0.138 px RMS off it (bound 0.1; "
-    "the grey line over the squares, as the checkerboard's)",
-    ("acircles", "single-grey"): "grey single image of an asymmetric circle grid, no "
-    "laser-off image: converged (0.0046 px), stripe 99.8 % on the line at 0.053 px, plane "
-    "0.0025 deg, 3-D 0.038 um, 7/7 views; but a dot is 1.39 px off its truth (floor "
-    "0.053 px, inflated by it; calibrate's rejection pass left it out): not established",
+    "image: converged at the floor (0.0205 / 0.0211 px), worst corner 0.078 px, stripe "
+    "746 centres all on the line at 0.044 px RMS, 3-D 0.41 um, but the plane is 0.030 deg "
+    "off (bound 0.01): the clipped line is kept in 3 of the 9 views only (its plateau "
+    "over checker edges is refused in the others)",
 }
 
 

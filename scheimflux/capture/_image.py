@@ -21,6 +21,7 @@ from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._laser import (
     JPEG_BLOCK_PX,
+    clipped_pixels,
     laser_in_board,
     laser_removed,
     near_laser,
@@ -96,6 +97,16 @@ class ImageLine:
     mask: np.ndarray
     hull: np.ndarray
     reason: str = ""
+
+
+def _pitch_px(corners: np.ndarray) -> float:
+    """The median distance (px) from each found point to its nearest neighbour."""
+    uv = corners[np.all(np.isfinite(corners), axis=1)]
+    if len(uv) < 2:
+        return 0.0
+    d = np.linalg.norm(uv[:, None] - uv[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
 
 
 def find_target(image, off, target: Target, *, single: bool, min_points: int,
@@ -205,6 +216,15 @@ def line_and_points(
             w = max(w, float(stripe_width_px))
         hit |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
                           extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
+    if grey:
+        # a clipped line's own pixels, where the extractor refused its centres (a
+        # plateau over checker edges): the points next to them move as much
+        # (a line: no wider than half a pitch of the points; white squares that clip
+        # are no line)
+        clip = clipped_pixels(image, mask, 0.25 * _pitch_px(corners))
+        if len(clip):
+            w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
+            hit |= near_laser(target, corners, clip, w5, join=False)
     if hit.any():
         out.corners = corners = corners.copy()
         corners[hit] = np.nan

@@ -53,6 +53,7 @@ _NOISE_K = 5.0  # off_local_grid: threshold in robust standard deviations of the
 _NOISE_MIN_PX = 0.1  # ... and never below (the detection noise of a sharp target)
 
 _REACH_FWHM = 2.5  # line reach beyond a point's influence, in line widths (FWHM)
+_MIN_CLIPPED = 20  # fewest pixels at the clip level that make a clipped line
 JPEG_BLOCK_PX = 16.0  # a JPEG chroma block (8 x 8 DCT at half resolution) in image pixels
 
 
@@ -238,6 +239,33 @@ def _dense_line(stripe_uv: np.ndarray, orientation: str) -> np.ndarray:
     return np.concatenate([out, uv])
 
 
+def clipped_pixels(image: Any, mask: np.ndarray, max_halfwidth_px: float) -> np.ndarray:
+    """`(N, 2)` `(u, v)` of the pixels of a grey integer image at its clip level (its
+    maximum, where at least `_MIN_CLIPPED` pixels inside `mask` reach it) inside
+    `mask`, in connected regions no wider than a line: at most `max_halfwidth_px` from
+    their edge (a board whose white squares clip is no line); none otherwise. In a grey
+    single image these are a clipped laser line's own pixels: they show where the line
+    is even where the extractor refuses its centres (a clipped plateau over checker
+    edges), so that the points next to it can be dropped."""
+    img = np.asarray(image)
+    if img.ndim != 2 or not np.issubdtype(img.dtype, np.integer) or not np.any(mask):
+        return np.zeros((0, 2))
+    top = img[mask].max()
+    clip = ((img >= top) & mask).astype(np.uint8)
+    if int(clip.sum()) < _MIN_CLIPPED:
+        return np.zeros((0, 2))
+    n, labels = cv2.connectedComponents(clip, connectivity=8)
+    inner = cv2.distanceTransform(clip, cv2.DIST_L2, 3)
+    widest = np.zeros(n)
+    np.maximum.at(widest, labels.reshape(-1), inner.reshape(-1))
+    thin = widest <= max_halfwidth_px
+    thin[0] = False  # the background label
+    v, u = np.nonzero(thin[labels])
+    if len(u) < _MIN_CLIPPED:
+        return np.zeros((0, 2))
+    return np.stack([u, v], axis=1).astype(np.float64)
+
+
 def near_laser(
     target,
     corners_px: np.ndarray,
@@ -246,6 +274,7 @@ def near_laser(
     *,
     orientation: str = "vertical-scan",
     extra_px: float = 0.0,
+    join: bool = True,
 ) -> np.ndarray:
     """The target points the laser line may have displaced (see the module doc).
 
@@ -256,12 +285,14 @@ def near_laser(
     - `orientation`: the extractor's scan direction (`"vertical-scan"`: one centre per
       column), to join the centres across gaps.
     - `extra_px`: added to the reach (`JPEG_BLOCK_PX` for a JPEG image).
+    - `join`: join the centres across gaps (False: `stripe_uv` are the line's pixels
+      themselves, e.g. `clipped_pixels`).
 
     **Returns:** `(M,)` bool, True for found points within the line's reach.
     """
     uv = np.asarray(corners_px, np.float64).reshape(-1, 2)
     found = np.all(np.isfinite(uv), axis=1)
-    line = _dense_line(stripe_uv, orientation)
+    line = _dense_line(stripe_uv, orientation) if join else np.asarray(stripe_uv, np.float64)
     out = np.zeros(len(uv), bool)
     if len(line) == 0 or not found.any():
         return out

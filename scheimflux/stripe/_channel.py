@@ -43,15 +43,21 @@ def _score(signal: np.ndarray, width_px: float, mask_small: np.ndarray | None) -
     return best
 
 
-def pick_channel(
-    img: np.ndarray, width_px: float, mask_small: np.ndarray | None = None
-) -> str:
+def pick_channel(img: np.ndarray, width_px: float, mask_small: np.ndarray | None = None) -> str:
     """The candidate channel with the highest ridge score (see the module docstring);
     `"grey"` for grey images and for colour images whose channels are equal."""
+    return ranked_channels(img, width_px, mask_small)[0]
+
+
+def ranked_channels(
+    img: np.ndarray, width_px: float, mask_small: np.ndarray | None = None
+) -> tuple[str, ...]:
+    """All candidates, the one `pick_channel` takes first, the others by falling score;
+    `("grey",)` for grey images and for colour images whose channels are equal."""
     if img.ndim == 2:
-        return "grey"
+        return ("grey",)
     if np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 1], img[:, :, 2]):
-        return "grey"
+        return ("grey",)
     scores = {c: _score(channel_image(img, c)[0], width_px, mask_small) for c in CANDIDATES}
     best = max(scores, key=scores.get)
     # A laser seen best in one plain colour is taken from that colour minus the others
@@ -59,5 +65,6 @@ def pick_channel(
     # and white glints cancel in the combination, at sqrt(1.5) times the noise.
     combined = f"{best}-minus-others"
     if best in ("red", "green", "blue") and scores[combined] >= 0.5 * scores[best]:
-        return combined
-    return best
+        best = combined
+    rest = sorted((c for c in CANDIDATES if c != best), key=lambda c: -scores[c])
+    return (best, *rest)

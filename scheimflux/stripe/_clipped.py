@@ -30,7 +30,7 @@ def profile_std(width: float) -> float:
     return math.hypot(width / FWHM_PER_SIGMA, steger_sigma(width))
 
 
-def rims_even(gather, flat, y, plateau, ny, gap, floor, n_rows):
+def rims_even(gather, flat, y, plateau, ny, gap, floor, n_rows, ratio_max=RIM_RATIO_MAX):
     """Scan lines whose clipped plateau has the same albedo at both rims.
 
     A clipped line's plateau ends where albedo x (ambient + laser) reaches the sensor's
@@ -58,7 +58,7 @@ def rims_even(gather, flat, y, plateau, ny, gap, floor, n_rows):
     left, right = level(yc[None, :] - off), level(yc[None, :] + off)
     inside = (yc - off[-1] >= 0) & (yc + off[-1] <= n_rows - 1)
     ratio = np.abs(np.log(np.maximum(left, floor) / np.maximum(right, floor)))
-    return inside & np.isfinite(y) & (ratio <= RIM_RATIO_MAX), left, right
+    return inside & np.isfinite(y) & (ratio <= ratio_max), left, right
 
 
 def plain_surroundings(left, right, ok, reach, floor):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import math
 import os
 from collections.abc import Iterable
@@ -12,11 +13,12 @@ import cv2
 import numpy as np
 
 from ._centroid import centroid_band
-from ._channel import pick_channel
+from ._channel import ranked_channels
 from ._clipped import RIM_FLOOR, plain_surroundings, profile_std, rims_even
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, as_image, block_noise, channel_image, estimate_noise
 from ._link import consistent, link_segments
+from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
@@ -37,8 +39,23 @@ WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
 # three minimum segments): glints and short reflections alone are not a line.
 MIN_LINE_FRACTION = 0.05
+# Colour "X-minus-others" without a laser-off image: largest |log| ratio of the albedo
+# (the other channels) on the two sides of a centre. 0.5 (a factor 1.65) refuses an
+# albedo edge within ~2 px of a 5 px line's centre, where the albedo x laser profile
+# puts the centre up to 0.9 px off (ChArUco bit borders along the line), and keeps the
+# crossings of checker edges (their centres: 0.042 px RMS with the test, 0.039 without,
+# on `render_capture`'s colour checkerboard at 15 degrees; 0.15 refused 11 % of them).
+ALBEDO_EVEN_MAX = 0.5
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
+
+
+def _min_line(width: float, min_segment: int | None, n_scan: int) -> int:
+    """Scan lines that the longest segment (or a long-ridge path) must span for the
+    frame to hold a line: three minimum segments, or `MIN_LINE_FRACTION` of the scan
+    lines."""
+    min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    return max(3 * min_pts, int(MIN_LINE_FRACTION * n_scan))
 
 
 def _empty(n: int, orientation: str, method: str, **extra) -> StripeResult:
@@ -77,7 +94,8 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
 def _signal(image, background, channel, width, normalise):
     """The 2-D signal image, the plain image whose clipping marks saturation, the
     channel used, the signal before the albedo normalisation (the signal itself
-    without one) and the plain laser-off channel (None without one)."""
+    without one), the plain laser-off channel (None without one) and the colour
+    candidates in score order (the channel alone unless it was chosen)."""
     img = as_image(image)
     if background is not None:
         off = as_image(background, name="background")
@@ -85,9 +103,11 @@ def _signal(image, background, channel, width, normalise):
             raise ValueError(
                 f"background (laser-off) image has shape {off.shape}, the image {img.shape}"
             )
+    ranked = (channel,)
     if channel == "auto":
         probe = img if background is None else img.astype(np.float32) - off.astype(np.float32)
-        channel = pick_channel(probe, width)
+        ranked = ranked_channels(probe, width)
+        channel = ranked[0]
     elif img.ndim == 2 and channel != "grey":
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
@@ -99,7 +119,16 @@ def _signal(image, background, channel, width, normalise):
         off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
             sig = _albedo_normalised(sig, level.astype(np.float32))
-    return sig, sat, channel, plain, off_level
+    return sig, sat, channel, plain, off_level, ranked
+
+
+def _others_mean(image: Any, channel: str) -> np.ndarray:
+    """The mean of the two channels other than the laser's (`channel` "X-minus-others"):
+    albedo x room light, without the laser (float32, image frame)."""
+    img = as_image(image)
+    k = {"blue": 0, "green": 1, "red": 2}[channel.removesuffix("-minus-others")]
+    a, b = (img[:, :, j].astype(np.float32) for j in range(3) if j != k)
+    return 0.5 * (a + b)
 
 
 def _denoised(off: np.ndarray) -> np.ndarray:
@@ -207,7 +236,54 @@ def extract_stripe(
     )  # fmt: skip
 
 
-def _extract_one(
+def _extract_one(image: Any, **options: Any) -> StripeResult:
+    """`extract_stripe` on one signal (laser-on image, or its laser-off difference);
+    where the coarse track finds no line, the longest continuous narrow ridge
+    (`_longridge.py`) is tried as the track instead (in each other colour candidate
+    first, for a colour image with `channel="auto"`)."""
+    result, retry = _extract_track(image, **options)
+    if result.valid.any() or retry is None:
+        return result
+    channels = [result.channel]
+    if options.get("channel", "auto") == "auto" and np.ndim(image) == 3:
+        # the colour candidates in the order of their scores: the print of a board can
+        # outscore a dim laser in the grey image, not in the laser's own colour
+        for ch in retry.ranked[1:]:
+            res_c, retry_c = _extract_track(image, **{**options, "channel": ch})
+            if res_c.valid.any():
+                return res_c
+            if retry_c is not None:
+                channels.append(ch)
+    for ch in channels:
+        opts = {**options, "channel": ch}
+        sig = retry if ch == result.channel else _extract_track(image, **opts)[1]
+        if sig is None:
+            continue
+        found = long_ridge_track(sig.img, sig.width, sig.noise, sig.roi, sig.orientation)
+        if found is None:
+            continue
+        orientation, path = found
+        res_l, _ = _extract_track(image, **{**opts, "orientation": orientation}, track=path)
+        if res_l.valid.any():
+            return res_l
+    return result
+
+
+@dataclasses.dataclass(frozen=True)
+class _Retry:
+    """What the long-ridge search of `_extract_one` needs from a pass that found no
+    line: the signal image, its noise, the region of interest, the line width, the
+    orientation asked for and the colour candidates in score order."""
+
+    img: np.ndarray
+    noise: float
+    roi: np.ndarray | None
+    width: float
+    orientation: str
+    ranked: tuple[str, ...]
+
+
+def _extract_track(
     image: Any,
     *,
     method: str = "steger",
@@ -222,11 +298,15 @@ def _extract_one(
     normalise_background: bool = True,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
-) -> StripeResult:
-    """`extract_stripe` on one signal (laser-on image, or its laser-off difference)."""
+    track: LongRidge | None = None,
+) -> tuple[StripeResult, _Retry | None]:
+    """`extract_stripe` on one signal, from the coarse track or, given `track` (a
+    long-ridge path in the scan frame of `orientation`), from that path. Also returns
+    what a long-ridge search needs where no centre was found (None otherwise)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
+    asked = orientation
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel, unnormalised, off_level = _signal(
+    img, sat_img, channel, unnormalised, off_level, ranked = _signal(
         image, background, channel, width, normalise_background
     )
     roi = as_mask(mask, img.shape)
@@ -259,17 +339,21 @@ def _extract_one(
         """The scan-frame image at integer (row, column) index arrays (broadcast)."""
         return np.take(source, rows * stride_y + cols * stride_x)
 
-    coarse = coarse_track(
-        small,
-        shape[0],
-        shape[1],
-        width_px=width,
-        integer_input=integer,
-        pixel_noise=noise,
-        mask_small=mask_small,
-    )
+    retry = _Retry(img, noise, roi, width, asked, ranked) if track is None else None
+    if track is None:
+        coarse = coarse_track(
+            small,
+            shape[0],
+            shape[1],
+            width_px=width,
+            integer_input=integer,
+            pixel_noise=noise,
+            mask_small=mask_small,
+        )
+    else:
+        coarse = path_track(track, width, shape[0], _min_line(width, min_segment, shape[1]))
     if not coarse.found:
-        return _empty(shape[1], orientation, method, **extra)
+        return _empty(shape[1], orientation, method, **extra), retry
 
     sat_level = saturation
     if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
@@ -365,23 +449,33 @@ def _extract_one(
             asym_max = ASYMMETRY_MAX * min(profile_std(_DEFAULT_WIDTH) / profile_std(wide), 1.0)
             even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
             if off_level is None:
-                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims,
-                # and for the scan lines the first pass refused, no albedo change along
-                # the line nearby either (a line along a narrow white strip between black
-                # ones, as on a ChArUco board, has a symmetric plateau 1 px off the line,
-                # with black on both sides). The ones the first pass accepted keep the
-                # plateau pass's own tests: the line is kept in images of a board where
-                # albedo edges lie near it everywhere (a grey or colour single image of
-                # board and line, where the capture needs it to drop the corners near it).
+                # Without a laser-off image: the laser-on image 2 FWHM beyond the rims
+                # (every clipped scan line), and for the scan lines the first pass
+                # refused, no albedo change along the line nearby either (a line along a
+                # narrow white strip between black ones, as on a ChArUco board, has a
+                # symmetric plateau 1 px off the line, with black on both sides). On a
+                # grey signal the rim test applies to the ones the first pass accepted
+                # too (with the plateau pass's own tests alone they were 0.115 px RMS off
+                # the exact line on the paper rig's grey single checkerboard views; with
+                # it 80 % of them are kept, at 0.044 px); the capture finds the points
+                # next to a clipped line from its clipped pixels (`clipped_pixels` in
+                # `capture/_laser.py`), not from these centres.
                 rims, left, right = rims_even(
                     gather, flat_sat, lines.y, plateau, lines.ny, 2.0 * width,
                     max(3.0 * noise, RIM_FLOOR * sat_level), shape[0],
                 )  # fmt: skip
                 reach = int(math.ceil(np.median(plateau[saturated]) + 4.0 * width))
-                even &= rims & plain_surroundings(
+                plain = plain_surroundings(
                     left, right, saturated & np.isfinite(lines.y), reach, 3.0 * noise
                 )
-                even |= first_pass
+                if channel == "grey":
+                    even &= rims & (first_pass | plain)
+                else:
+                    # colour (X minus the others): the first pass's centres keep the
+                    # plateau pass's own tests, as before (a colour JPEG of a ChArUco
+                    # board keeps its clipped line at 0.050 px RMS so, and loses it to
+                    # the rim test: the JPEG's chroma puts laser light beside the line)
+                    even = (even & rims & plain) | first_pass
             else:  # the laser-off image at the rims themselves (2 px in to 2 px out)
                 even &= rims_even(
                     gather, off_level.reshape(-1), lines.y, plateau, lines.ny, -2.0,
@@ -393,7 +487,9 @@ def _extract_one(
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
     # field changes it by a few per cent); a profile much narrower or wider than the
     # line's median is a distorted one (a step under it, a glint beside it).
-    widths = lines.width[valid & ~saturated & np.isfinite(lines.width)]
+    # (a width of 0 is no measurement: where a profile gives none, e.g. a line over the
+    # print of a ChArUco board found by its long-ridge track, the median must not be 0)
+    widths = lines.width[valid & ~saturated & np.isfinite(lines.width) & (lines.width > 0)]
     med = float(np.median(widths)) if widths.size >= 8 else math.nan
     if widths.size >= 8 and method == "steger":
         wv = np.nan_to_num(lines.width, nan=0.0)
@@ -410,6 +506,24 @@ def _extract_one(
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
+    if background is None and channel.endswith("-minus-others") and valid.any():
+        # The laser's colour less the others holds albedo x laser light alone: an albedo
+        # edge along the line, inside its profile (a marker's bit border), cuts the
+        # profile into a narrower, nearly symmetric one up to 1 px off the line, and no
+        # ambient light beside it shows the step to the profile tests or the step fit.
+        # The other channels show the albedo (x the room light): a centre is kept only
+        # where it is about the same on both sides of the line (`rims_even`: the means of
+        # 5 samples a pixel apart from 0.1 FWHM out differ by at most `ALBEDO_EVEN_MAX`
+        # in log; levels under 5 % of the bright print count as 5 %).
+        others = _others_mean(image, channel)
+        flat_o = others.reshape(-1)
+        level = float(np.percentile(others, 99))
+        even, _, _ = rims_even(
+            gather, flat_o, y_fit, np.zeros(shape[1]), lines.ny, 0.1 * width,
+            max(3.0 * estimate_noise(others), RIM_FLOOR * level), shape[0],
+            ratio_max=ALBEDO_EVEN_MAX,
+        )  # fmt: skip
+        valid &= even | saturated
     x = np.arange(shape[1], dtype=np.float64)
     y = np.where(valid, y_fit, np.nan)
     if roi is not None and valid.any():
@@ -420,6 +534,7 @@ def _extract_one(
     valid &= consistent(y, valid)
     jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
     min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+    min_line = _min_line(width, min_segment, shape[1])
     sigma_s = max(width / (2.0 * math.sqrt(3.0)), 0.7)
     segment, valid = link_segments(
         y,
@@ -430,7 +545,9 @@ def _extract_one(
         min_points=min_pts,
         high=_HIGH * thr,
         trim=int(math.ceil(2.0 * sigma_s)),
-        min_line=max(3 * min_pts, int(MIN_LINE_FRACTION * shape[1])),
+        # a long-ridge track has shown the line already (`path_track`): each segment on
+        # it is judged alone (the print can cut the line into pieces shorter than this)
+        min_line=min_pts if track is not None else min_line,
     )
     saturated &= valid
     y = np.where(valid, y_fit, np.nan)
@@ -457,7 +574,7 @@ def _extract_one(
         confidence=np.where(valid, confidence, 0.0),
         segment=segment,
         **extra,
-    )
+    ), (None if valid.any() else retry)
 
 
 def extract_stripes(
