@@ -20,7 +20,6 @@ from scheimflux.calibrate._gauge import (
     PIXEL_PITCH,
     PROFILED,
     gauge_spectrum,
-    gauge_warning,
     profile_solve,
 )
 from scheimflux.calibrate._model import camera_residuals, make_data
@@ -93,22 +92,6 @@ def test_profile_extends_past_the_grid():
     # within bounds that exclude it, it stays at the bound and says so
     fit, prof = profile_solve(solve, start, grid=[0.0, 800.0, 1600.0], bounds=(0.0, 1800.0))
     assert prof.at_bound and prof.value == 1800.0 and float(fit.params.camera.x0) == 1800.0
-
-
-def test_a_profile_at_the_sensor_edge_is_a_warning():
-    # the profile's optimum inside the sensor: no warning; held at the sensor's edge
-    # (the data did not place it) or not converged: a one-line warning that names it
-    def solve(p):
-        return _FakeFit(p, 1.0 + 1e-5 * (float(p.camera.x0) - 2100.0) ** 2)
-
-    start = _Holder(_X(jnp.asarray(800.0)))
-    _, inside = profile_solve(solve, start, grid=[0.0, 800.0, 1600.0])
-    _, edge = profile_solve(solve, start, grid=[0.0, 800.0, 1600.0], bounds=(0.0, 1800.0))
-    assert gauge_warning(None) is None and gauge_warning(inside) is None
-    note = gauge_warning(edge)
-    assert "camera.x0" in note and "1800 px" in note and "edge" in note and "\n" not in note
-    stalled = dataclasses.replace(inside, converged=False)
-    assert "did not converge" in gauge_warning(stalled)
 
 
 @pytest.fixture(scope="module")

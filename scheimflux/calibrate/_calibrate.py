@@ -4,7 +4,6 @@ paper (§2.4) and jointly as one parameter pytree: the orchestration of the step
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 
 import jax.numpy as jnp
@@ -18,7 +17,6 @@ from ._camera import (
     pixel_footprint_mm,
 )
 from ._gates import REJECT_SIGMA, screen_observations
-from ._gauge import gauge_warning
 from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
 from ._quality import _gated
@@ -137,7 +135,7 @@ def calibrate(
         rejected = {"threshold_sigma": reject}
         if reject is not None:
             rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
-        return _with_gauge_warning(_gated(cal, {**outside, **rejected}, None, throw), cam_cal)
+        return _gated(cal, {**outside, **rejected}, None, throw)
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
@@ -203,18 +201,7 @@ def calibrate(
         sensor_size=(int(obs.width), int(obs.height)),
         left_out=left_out,
     )
-    return _with_gauge_warning(
-        _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw), cam_cal
-    )
-
-
-def _with_gauge_warning(cal: Calibration, cam_cal: CameraCalibration) -> Calibration:
-    """`cal` with `gauge_warning`'s note added to its quality warnings, if any."""
-    note = gauge_warning(cam_cal.gauge_profile)
-    if note is None or cal.quality is None:
-        return cal
-    quality = dataclasses.replace(cal.quality, warnings=(*cal.quality.warnings, note))
-    return dataclasses.replace(cal, quality=quality)
+    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw)
 
 
 def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:

@@ -208,22 +208,6 @@ def profile_solve(
     return best, profile
 
 
-def gauge_warning(profile: GaugeProfile | None) -> str | None:
-    """A one-line warning where the default gauge's profile did not place the profiled
-    parameter inside the sensor (held at its edge, `at_bound`) or did not converge;
-    None otherwise (and for no profile). The held value, like every held parameter, has
-    no uncertainty in the covariance, so there distances may carry an unstated bias."""
-    if profile is None or (profile.converged and not profile.at_bound):
-        return None
-    where = "stopped at the sensor's edge" if profile.at_bound else "did not converge"
-    return (
-        f"the axis point ({profile.path}) is weakly determined by these views: its cost "
-        f"profile {where} ({profile.value:.0f} px), and distances may carry a bias the "
-        "stated uncertainty does not include; add views that tilt the boards more, or "
-        "that cover the sensor's edges"
-    )
-
-
 @dataclasses.dataclass(frozen=True)
 class GaugeSpectrum:
     """Singular values of a solve's column-scaled Jacobian and its weakest directions.
