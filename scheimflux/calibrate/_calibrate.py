@@ -85,10 +85,8 @@ def calibrate(
     - `joint`: after the separate steps, solve every block together (default); False:
       stop after the paper's sequence (outliers are then only counted).
     - `freeze`: parameter paths held fixed, e.g. `("camera.dx", "camera.dy",
-      "camera.f")`, `"stage.R_m_c"`, `"eccentricity"`; None: the default gauge (see
-      [`calibrate_camera`][]: pixel pitch and f, the axis point's x profiled for the
-      thick lens with distortion). A given list replaces the defaults; Δω of the stage
-      is always held.
+      "camera.f")`, `"stage.R_m_c"`, `"eccentricity"`; None: `DEFAULT_FREEZE`. A given
+      list replaces the defaults; Δω of the stage is always held.
     - `sigma_corner_px`: the corners' noise σ (px per coordinate).
     - `sigma_stripe_px`: the stripe centres' noise σ (px), converted to mm at the
       camera's pixel footprint on the boards for the stripe and gauge residuals.

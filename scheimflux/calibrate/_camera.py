@@ -18,7 +18,7 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._gauge import GAUGE_HELD, PROFILED, GaugeProfile, ideal_freeze, profile_solve, start_holds
+from ._gauge import ideal_freeze
 from ._init import (
     _directions,
     closed_form_pinhole,
@@ -29,7 +29,7 @@ from ._init import (
 )
 from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
-from ._solve import ONE_SHOT, Fit, NotConvergedError, least_squares
+from ._solve import ONE_SHOT, Fit, least_squares
 
 MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
 # the models built on the thick lens (nominal start, pixel pitch, distortion first)
@@ -58,9 +58,8 @@ def make_distortion(name: str):
 # defaults fix the pixel pitch (datasheet), f (lens datasheet) and a gauge for the
 # tilt: the nominal adapter tilt when it is known, else the axis through the sensor
 # centre. `diagnostics()` reports the singular values that show this. With distortion
-# the tilt is no longer an exact gauge: the default with distortion holds only pitch
-# and f and profiles the axis point's x (`_gauge`, docs/noncentral.md); these sets stay
-# the ideal stage's gauge and the default of `distortion="none"`.
+# the tilt is no longer an exact gauge (`_gauge`, docs/noncentral.md: measured, not yet
+# solved; `freeze=("camera.dx", "camera.dy", "camera.f")` frees it).
 DEFAULT_FREEZE = {
     ("thick-lens", "nominal"): ideal_freeze("nominal"),
     ("thick-lens", "closed-form"): ideal_freeze("closed-form"),
@@ -97,9 +96,6 @@ class CameraCalibration:
     reprojection_rms_px: float
     init: str
     freeze: tuple = ()  # the parameter paths held fixed
-    # where the default gauge placed the profiled parameter (`_gauge.profile_solve`);
-    # None where the frozen set was given or the camera has no distortion
-    gauge_profile: GaugeProfile | None = None
 
 
 def _initial(obs, model, init):
@@ -177,20 +173,16 @@ def calibrate_camera(
       `"closed-form"` (homographies, no nominal tilt needed) or `"auto"` (nominal when
       the observations give focal length, magnification and tilt).
     - `freeze`: parameter paths held fixed, e.g. `("camera.dx", "camera.dy")`; None:
-      the default gauge. For the thick lens with distortion only the pixel pitch and f
-      are held: the tilt is free and the axis point's x is placed at the minimum of its
-      cost profile (`_gauge.profile_solve`; the result lists `camera.x0` as held and
-      `gauge_profile` holds the profile). Otherwise `DEFAULT_FREEZE[(model, how it was
-      initialised)]` (pixel pitch, f and the tilt or the axis point for the
-      distortion-free thick lens). With `"opencv"` the terms outside `opencv_flags` are
+      `DEFAULT_FREEZE[(model, how it was initialised)]` (pixel pitch, f and a tilt
+      gauge for the thick lens); with `"opencv"` the terms outside `opencv_flags` are
       always added.
     - `sigma_corner_px`: the corners' noise σ (px per coordinate): the residuals'
       weight.
     - `robust`: Huber threshold in units of σ (e.g. 3) for outlier corners; None: plain
       least squares.
     - `max_steps`: Levenberg–Marquardt steps per solve.
-    - `throw`: raise `NotConvergedError` if the final solve (or the default gauge's
-      profile) does not converge (the first, ideal-camera solve never raises).
+    - `throw`: raise `NotConvergedError` if the final solve does not converge (the
+      first, ideal-camera solve never raises).
     - `opencv_flags`: for `model="opencv"` (OpenCV's camera, equal to
       `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
       `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`
@@ -222,21 +214,8 @@ def calibrate_camera(
             "distortion='none' or the thick-lens model"
         )
     camera, poses, how = _initial(obs, model, init)
-    data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
-    if freeze is None and model in THICK_LENS_MODELS and distortion != "none":
-        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
-        fit, profile = _gauge_free_solve(
-            SystemParams(camera, poses), data, how, obs.width, max_steps
-        )
-        freeze = GAUGE_HELD + (PROFILED,)
-        if not profile.converged and throw:
-            raise NotConvergedError(
-                f"the gauge profile of {PROFILED} did not converge "
-                f"({len(profile.values)} solves; the last: {fit.message or 'converged'})",
-                fit,
-            )
-        return _finish(fit, data, how, freeze, model, max_steps, throw, profile)
     freeze = _model_freeze(model, how, freeze, opencv_flags)
+    data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     # The ideal camera first (the distortion at zero, held), then with the distortion
     # free. The distortion is held at run time (`hold`), not frozen: both solves have
     # the same state vector and run the same compiled program.
@@ -268,43 +247,7 @@ def calibrate_camera(
         max_steps=max_steps,
         throw=throw and not central_first,
     )
-    return _finish(fit, data, how, freeze, model, max_steps, throw)
-
-
-def _gauge_free_solve(params, data, how, width, max_steps):
-    """The default thick lens with distortion: only the pixel pitch and f held.
-
-    One compiled program (the same state vector; what is held changes at run time):
-    1. the ideal camera, the distortion, e and the ideal gauge held at their start
-       values (the tilt for a nominal start, the axis point for a closed-form one);
-    2. the distortion free, the ideal gauge still held;
-    3. the tilt and the axis point free, the axis point's x (`PROFILED`) placed at the
-       minimum of the cost profile (`_gauge.profile_solve`): along the axis point
-       against the boards' translations Levenberg–Marquardt alone creeps and stops on
-       rounding noise (docs/noncentral.md).
-
-    **Returns:** `(fit, profile)`.
-    """
-    ideal, distorted = start_holds(how)
-
-    def solve(p, hold=(PROFILED,)):
-        return least_squares(
-            camera_residuals, p, data, freeze=GAUGE_HELD, hold=hold,
-            max_steps=max_steps, throw=False,
-        )  # fmt: skip
-
-    first = solve(params, ideal)
-    second = solve(first.params, distorted)
-    # the axis point kept on the sensor (the "axis point" quality gate): where the noise
-    # pushes the profile's minimum off it, x0 stays at the sensor's edge (`at_bound`)
-    return profile_solve(
-        solve, second.params, grid=np.linspace(0.0, width - 1.0, 9), bounds=(0.0, width - 1.0)
-    )
-
-
-def _finish(fit, data, how, freeze, model, max_steps, throw, profile=None):
-    """The non-central solve (from the central optimum) and the `CameraCalibration`."""
-    if model == "thick-lens-noncentral":
+    if central_first:
         # the central thick lens's optimum is the start, the pupil's shift from zero
         camera = ThickLensNonCentral.from_central(fit.params.camera)
         fit = least_squares(
@@ -317,7 +260,7 @@ def _finish(fit, data, how, freeze, model, max_steps, throw, profile=None):
         )
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
-        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), profile
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)
     )
 
 
