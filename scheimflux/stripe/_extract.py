@@ -244,7 +244,7 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
     result, retry = _extract_track(image, **options)
     if result.valid.any() or retry is None:
         return result
-    channels = [result.channel]
+    signals = {result.channel: retry}  # each channel's failed pass, for the search below
     if options.get("channel", "auto") == "auto" and np.ndim(image) == 3:
         # the colour candidates in the order of their scores: the print of a board can
         # outscore a dim laser in the grey image, not in the laser's own colour
@@ -253,12 +253,9 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
             if res_c.valid.any():
                 return res_c
             if retry_c is not None:
-                channels.append(ch)
-    for ch in channels:
+                signals[ch] = retry_c
+    for ch, sig in signals.items():
         opts = {**options, "channel": ch}
-        sig = retry if ch == result.channel else _extract_track(image, **opts)[1]
-        if sig is None:
-            continue
         found = long_ridge_track(sig.img, sig.width, sig.noise, sig.roi, sig.orientation)
         if found is None:
             continue
