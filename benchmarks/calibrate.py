@@ -45,8 +45,7 @@ import numpy as np
 from scheimflux.calibrate import calibrate, calibrate_camera
 from scheimflux.calibrate._compare import opencv_calibrate, opencv_plane_rms_um
 from scheimflux.reconstruct._reconstruct import stripe_to_camera, stripe_to_measurement
-from scheimflux.simulate import paper_rig, simulate_observations
-from scheimflux.simulate._scenes import gauge_scan
+from scheimflux.simulate import gauge_scan, paper_rig, simulate_observations
 from scheimflux.targets._board import Checkerboard
 
 CORNER_NOISE = 0.03

@@ -52,9 +52,9 @@ def run_demo(
     from .io._observations import write_observations
     from .io._pointcloud import write_ply
     from .reconstruct._reconstruct import stripe_to_camera, stripe_to_measurement
+    from .simulate import gauge_scan
     from .simulate._observe import simulate_observations, write_truth
     from .simulate._rig import paper_rig
-    from .simulate._scenes import gauge_scan
     from .targets._board import Checkerboard
 
     t_start = time.perf_counter()

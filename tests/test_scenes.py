@@ -8,21 +8,20 @@ import pytest
 
 from scheimflux.camera import ThickLensScheimpflug
 from scheimflux.io import read_observations, write_observations
-from scheimflux.simulate._observe import (
-    read_truth,
-    simulate_observations,
-    write_truth,
-)
-from scheimflux.simulate._rig import paper_rig
-from scheimflux.simulate._scenes import (
+from scheimflux.simulate import (
     BEARING_RADII_MM,
     board_poses,
     default_stage,
     gauge_scan,
+    paper_rig,
+    read_truth,
+    simulate_observations,
     step_gauge,
     stripe_on_board,
+    write_truth,
 )
-from scheimflux.targets._board import Checkerboard, parse_board_size
+from scheimflux.targets import Checkerboard
+from scheimflux.targets._board import parse_board_size
 
 
 @pytest.fixture(scope="module")

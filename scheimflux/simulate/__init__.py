@@ -1,5 +1,15 @@
 """Ground truth: Snell's-law ray tracing through real lenses, rigs, scenes and images."""
 
+from ._gauges import (
+    BEARING_RADII_MM as BEARING_RADII_MM,
+    RING_GAUGE_RADIUS_MM as RING_GAUGE_RADIUS_MM,
+    GaugeScan as GaugeScan,
+    ScanFrame as ScanFrame,
+    StepProfile as StepProfile,
+    default_stage as default_stage,
+    gauge_scan as gauge_scan,
+    step_gauge as step_gauge,
+)
 from ._glass import (
     GLASSES as GLASSES,
     Glass as Glass,
@@ -57,17 +67,9 @@ from ._rig import (
     paraxial_sensor_pose as paraxial_sensor_pose,
 )
 from ._scenes import (
-    BEARING_RADII_MM as BEARING_RADII_MM,
-    RING_GAUGE_RADIUS_MM as RING_GAUGE_RADIUS_MM,
     BoardView as BoardView,
-    GaugeScan as GaugeScan,
-    ScanFrame as ScanFrame,
-    StepProfile as StepProfile,
     StripeProfile as StripeProfile,
     board_poses as board_poses,
-    default_stage as default_stage,
-    gauge_scan as gauge_scan,
-    step_gauge as step_gauge,
     stripe_on_board as stripe_on_board,
     trace_points as trace_points,
 )

@@ -36,19 +36,17 @@ from ..geometry._transforms import Pose
 from ..io._files import load_json, write_json
 from ..io._observations import Nominal, Observations, StageScan, View
 from ..targets._target import Target
+from ._gauges import GaugeScan, default_stage, gauge_scan
 from ._lens import paraxial
 from ._pupil import PupilSampling, pupil_grid, pupil_points
 from ._rig import Rig
 from ._scenes import (
-    GaugeScan,
     StripeProfile,
     _board_stripe_points,
     _field,
     _inside,
     _trace_stripes,
     board_poses,
-    default_stage,
-    gauge_scan,
 )
 
 __all__ = [
