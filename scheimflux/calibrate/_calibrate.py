@@ -133,7 +133,7 @@ def calibrate(
         rejected = {"threshold_sigma": reject}
         if reject is not None:
             rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
-        return _gated(cal, {**outside, **rejected}, None, throw)
+        return _gated(cal, {**outside, **rejected}, None, throw, cam_cal.notes)
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
@@ -199,7 +199,7 @@ def calibrate(
         sensor_size=(int(obs.width), int(obs.height)),
         left_out=left_out,
     )
-    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw)
+    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, cam_cal.notes)
 
 
 def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:

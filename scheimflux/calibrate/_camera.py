@@ -28,6 +28,7 @@ from ._init import (
     thick_lens_from_pinhole,
 )
 from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
+from ._nested import nested_f_test
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
 from ._solve import ONE_SHOT, Fit, least_squares
 
@@ -96,6 +97,7 @@ class CameraCalibration:
     reprojection_rms_px: float
     init: str
     freeze: tuple = ()  # the parameter paths held fixed
+    notes: tuple[str, ...] = ()  # decisions of the solve (e.g. the pupil terms' test)
 
 
 def _initial(obs, model, init):
@@ -247,21 +249,47 @@ def calibrate_camera(
         max_steps=max_steps,
         throw=throw and not central_first,
     )
+    notes = ()
     if central_first:
         # the central thick lens's optimum is the start, the pupil's shift from zero
-        camera = ThickLensNonCentral.from_central(fit.params.camera)
-        fit = least_squares(
-            camera_residuals,
-            SystemParams(camera, fit.params.board_poses),
-            data,
-            freeze=freeze,
-            max_steps=max_steps,
-            throw=throw,
+        central = fit
+        start = SystemParams(
+            ThickLensNonCentral.from_central(central.params.camera), central.params.board_poses
         )
+        fit = least_squares(
+            camera_residuals, start, data, freeze=freeze, max_steps=max_steps, throw=throw
+        )
+        if "camera.pupil" not in freeze:
+            fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, data, freeze,
+                                                            max_steps, throw)  # fmt: skip
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
-        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze)
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), notes
     )
+
+
+def _pupil_kept_if_significant(central, fit, start, data, freeze, max_steps, throw):
+    """The non-central solve's pupil terms if they reduce the corners' residuals by more
+    than noise would (`nested_f_test` against the central optimum), else the solve with
+    them held at zero (at run time: the same compiled program; the central optimum is
+    its start) and `camera.pupil` added to the frozen set.
+
+    **Returns:** `(fit, freeze, notes)`; `notes` says what was decided and why.
+    """
+    test = nested_f_test(2.0 * central.cost, 2.0 * fit.cost, fit.n_observations,
+                         len(fit.labels), 2)  # fmt: skip
+    stat = f"F = {test.f:.3g}, p = {test.p_value:.2g}"
+    if test.significant:
+        return fit, freeze, (f"pupil terms kept: they reduce the corners' residuals "
+                             f"significantly ({stat})",)  # fmt: skip
+    held = least_squares(camera_residuals, start, data, freeze=freeze,
+                         hold=("camera.pupil",), max_steps=max_steps, throw=throw)  # fmt: skip
+    note = (
+        f"pupil terms held at 0: the non-central fit of the corners is not significantly "
+        f"better than the central one ({stat}, level {test.alpha:g}); the lens is central "
+        "to the data's precision"
+    )
+    return held, tuple(freeze) + ("camera.pupil",), (note,)
 
 
 # Compiled residual evaluation for the summaries (eager evaluation would dispatch every
