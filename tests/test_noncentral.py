@@ -355,8 +355,18 @@ def test_pupil_terms_held_where_the_lens_is_central_to_the_datas_precision():
     assert any("pupil terms held at 0" in n and "p = " in n for n in nc.notes), nc.notes
     assert nc.fit.converged
     # held at zero the model IS the central one, started at the central optimum: the
-    # same optimum to the solver's tolerance (relative 1e-8 on the lens parameters)
+    # same optimum to the solver's tolerance. Judged in units of each parameter's σ
+    # (the central fit's covariance, (JᵀJ)⁻¹ of the σ-weighted residuals): the stopping
+    # rule is relative in the column-scaled state, so a weakly determined parameter
+    # (the axis point: measured 5e-6 px apart) moves more in its own units than a
+    # strong one; 1e-3 σ is far below anything a user would read.
+    cov = np.linalg.inv(central.fit.normal_matrix)
+    labels = list(central.fit.labels)
     for name in ("f", "e", "z0", "phi", "theta", "x0", "y0"):
         a, b = float(getattr(nc.camera, name)), float(getattr(central.camera, name))
-        assert a == pytest.approx(b, rel=1e-8, abs=1e-9), name
+        if f"camera.{name}" not in labels:  # frozen in both: the same held value
+            assert a == b, name
+            continue
+        k = labels.index(f"camera.{name}")
+        assert abs(a - b) <= 1e-3 * np.sqrt(cov[k, k]), (name, a, b, np.sqrt(cov[k, k]))
     assert nc.reprojection_rms_px == pytest.approx(central.reprojection_rms_px, rel=1e-6)
