@@ -149,7 +149,6 @@ def test_measurement_fast_equals_reference(name):
     np.testing.assert_allclose(fast.points, ref.points, rtol=1e-12)
 
 
-
 @pytest.mark.parametrize("name", ["thick", "distorted", "pinhole"])
 def test_out_buffers_are_reused(name):
     # `out=`: the result is written into the previous result's buffers (no fresh
