@@ -62,7 +62,8 @@ def numpy_eq3_broadcast(K_f: np.ndarray, n: np.ndarray, uv: np.ndarray) -> np.nd
 def numpy_eq13(K_f, n, R, t, c, s, uv):
     """Eq. (13) after eq. (3) on `(frames, points, 2)` pixels: `X_m = R_i (R X_c + t)`,
     `R_i` about z by the frame's angle (`c`, `s`: its cosine and sine, `(frames, 1)`)."""
-    X = numpy_eq3_broadcast(K_f, n, uv.reshape(-1, 2)) @ R.T + t
+    X = numpy_eq3_broadcast(K_f, n, uv.reshape(-1, 2))
+    X = X[:, 0:1] * R[:, 0] + X[:, 1:2] * R[:, 1] + X[:, 2:3] * R[:, 2] + t  # no BLAS
     X = X.reshape(uv.shape[:-1] + (3,))
     x, y = X[..., 0], X[..., 1]
     return np.stack([c * x - s * y, s * x + c * y, X[..., 2]], axis=-1)
