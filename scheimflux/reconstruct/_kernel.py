@@ -97,21 +97,23 @@ def _undistorted_pixels(camera: ThickLensScheimpflug, u, v):
 
 
 def _rays(camera: AbstractCamera, plane: LaserPlane, u, v):
-    """`H`, the finite stand-in (and, with distortion, undistorted) pixel planes `su`,
-    `sv`, the plane normal used, whether each pixel is finite, whether its ray is usable
-    so far, and whether the plane is usable."""
+    """`H`, the pixel planes `su`, `sv` (the raw pixels; with distortion the undistorted
+    ones, computed from finite stand-ins), the plane normal used, whether each pixel is
+    finite, whether its ray is usable so far, and whether the plane is usable."""
     fin = jnp.isfinite(u) & jnp.isfinite(v)
     H = _pixel_matrix(camera)
-    su = jnp.where(fin, u, jnp.zeros_like(u))
-    sv = jnp.where(fin, v, jnp.zeros_like(v))
-    ok = fin
-    if isinstance(camera, ThickLensScheimpflug):
-        # The stand-in is the principal pixel (as the reference), where h[3] ≠ 0.
+    # Without distortion the raw pixels: a non-finite one is INVALID_PIXEL through `fin`
+    # whatever its ray computes to, and the status (integer) carries no gradient; the
+    # points loop selects its own inputs on the status (`_point_inputs`). Not selecting
+    # stand-ins here saves two selects and the principal point's load per pixel.
+    su, sv, ok = u, v, fin
+    if isinstance(camera, ThickLensScheimpflug) and camera.is_distorted:
+        # The undistortion needs finite input: the stand-in is the principal pixel (as
+        # the reference), where h[3] ≠ 0.
         su = jnp.where(fin, u, camera.x0.astype(u.dtype))
         sv = jnp.where(fin, v, camera.y0.astype(v.dtype))
-        if camera.is_distorted:
-            su, sv, ok_u = _undistorted_pixels(camera, su, sv)
-            ok = ok & ok_u
+        su, sv, ok_u = _undistorted_pixels(camera, su, sv)
+        ok = ok & ok_u
     p_ok = plane_ok(plane)
     n = jnp.where(p_ok, plane.n, jnp.zeros_like(plane.n).at[2].set(1.0))
     return H, su, sv, n, fin, ok, p_ok
