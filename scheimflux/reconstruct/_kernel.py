@@ -24,8 +24,10 @@ are those of the reference (`intersect_ray_plane` on `backproject_one_with_mask`
 - `BEHIND_CAMERA`: `t = h[3] |P| / (n · h) ≤ 0`, i.e. `h[3] (n · h) ≤ 0`;
 - `OUTSIDE_SENSOR`: as the reference.
 
-Invalid pixels are replaced by a finite stand-in before the arithmetic (double `where`),
-so gradients of a masked loss stay finite, as in the reference.
+The points loop replaces the pixels of non-OK points by 0 before the arithmetic (double
+`where`), so gradients of a masked loss stay finite, as in the reference; the status
+loop reads the raw pixels (an integer status has no gradient). With distortion the
+undistortion starts from finite stand-ins (the principal pixel).
 """
 
 from __future__ import annotations
