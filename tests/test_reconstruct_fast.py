@@ -184,6 +184,23 @@ def test_out_buffers_are_reused(name):
             call(uv1, out=(new.points, new.status))
 
 
+
+def test_out_buffer_viewed_from_numpy_is_not_overwritten():
+    # A previous result still viewed from NumPy (`np.asarray` shares the buffer on CPU)
+    # must keep its values: XLA then does not reuse that buffer, and the call still
+    # returns the right result.
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    uv0, uv1 = jnp.asarray(_pixels(200, seed=3)), jnp.asarray(_pixels(200, seed=4))
+    old = sf.stripe_to_camera(cam, plane, uv0)
+    view = np.asarray(old.points)
+    kept = view.copy()
+    new = sf.stripe_to_camera(cam, plane, uv1, out=old)
+    np.testing.assert_array_equal(view, kept)
+    np.testing.assert_array_equal(
+        np.asarray(new.points), np.asarray(sf.stripe_to_camera(cam, plane, uv1).points)
+    )
+
+
 def _batch_loops(compiled_text: str, n: int) -> list[str]:
     """The top-level instructions of the entry computation that loop over the `n` pixels
     (fusions or unfused element-wise ops whose result has a dimension `n`)."""

@@ -196,7 +196,8 @@ def stripe_to_camera(
       `points` and `status` buffers are reused for the result (donated: they are
       deleted by the call; use the returned object). For repeated calls on large
       batches: a fresh result costs one page fault per 4 KiB of output on first write
-      (docs/throughput.md). Ignored for cameras without the fused kernel.
+      (docs/throughput.md). A buffer still viewed from NumPy is not reused (the view
+      keeps its values). Ignored for cameras without the fused kernel.
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
