@@ -1,18 +1,27 @@
 """Reconstruction speed: the fused kernel against plain NumPy eq. (3), the machine's copy
 bandwidth, and streaming a scan to PLY against the in-memory path.
 
-    python benchmarks/reconstruct.py [--max-points 1e7] [--quick] [--repeats 5]
-                                     [--stream-frames 1000,10000] [--json ROWS.json]
+    python benchmarks/reconstruct.py [--max-points 1e7] [--min-points 1e4] [--quick]
+                                     [--repeats 9] [--stream-frames 1000,10000]
+                                     [--json ROWS.json]
 
-1. `stripe_to_camera` (public function, float32 and float64) at N = 1e4 … `--max-points`
-   on the paper's ×1.5 thick-lens preset, side by side with a vectorised NumPy
-   X = K_f p̃ / (n · K_f p̃) on the same pixels, best of `--repeats`; the first call's
-   extra time is the compile time; the CPU-time rates (best process CPU seconds, all
-   threads) are given beside the wall-clock ones. The bandwidth fraction is the kernel's bytes
-   (2 floats in, 3 out, 1 status byte per point: the minimum; the kernel moves ~1.4x
-   that, reading the pixels twice, see docs/throughput.md) per second over a NumPy copy's (read +
-   write) measured in the same run.
-2. Streaming F frames × 1600 points (`--stream-frames`) to a binary PLY:
+1. `stripe_to_camera` (public function, float32 and float64) at N = `--min-points` …
+   `--max-points` on the paper's ×1.5 thick-lens preset, side by side with two plain
+   NumPy versions of X = K_f p̃ / (n · K_f p̃) on the same pixels: with matrix products
+   (NumPy's BLAS) and with element-wise broadcasts (no BLAS); the baseline is the faster
+   of the two in that run. Ours twice: a fresh result per call, and `out=` the previous
+   result (its buffers reused). All four are timed alike: each call allocates its
+   result (ours: XLA's; NumPy's: NumPy's), ours waits for `block_until_ready`, one
+   warm-up call each, then `--repeats` rounds calling them in turn (half as many at
+   1e7), medians (the best wall time is in the note). The first call's extra time is
+   the compile time. CPU-time rates (median process CPU seconds, all threads) are given
+   beside the wall-clock ones. The bandwidth fraction is the kernel's bytes (2 floats
+   in, 3 out, 1 status byte per point: the minimum; the kernel moves ~1.4x that,
+   reading the pixels twice, see docs/throughput.md) per second over a NumPy copy's
+   (read + write) measured in the same run.
+2. `stripe_to_measurement` float32 on (1000 frames, N / 1000, 2) pixels for N ≥ 1e6,
+   fresh and `out=`, against NumPy eq. (3) + (13) with broadcasts, the same way.
+3. Streaming F frames × 1600 points (`--stream-frames`) to a binary PLY:
    `iter_reconstruct` + `open_points_writer` against `reconstruct_frames` +
    `write_points` (one batch in memory), each in its own subprocess so that the peak
    RSS (`VmHWM`) is that path's alone.
@@ -36,9 +45,28 @@ import numpy as np
 
 
 def numpy_eq3(K_f: np.ndarray, n: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """X = K_f p̃ / (n · K_f p̃), vectorised (N, 2) → (N, 3)."""
+    """X = K_f p̃ / (n · K_f p̃), vectorised (N, 2) → (N, 3), with matrix products (NumPy
+    hands them to its BLAS, OpenBLAS here, which may use every core)."""
     P = uv @ K_f[:, :2].T + K_f[:, 2]
     return P / (P @ n)[:, None]
+
+
+def numpy_eq3_broadcast(K_f: np.ndarray, n: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The same eq. (3) as element-wise broadcasts (no BLAS call; one thread):
+    `P = u K_f[:, 0] + v K_f[:, 1] + K_f[:, 2]`, `q = m · [u, v, 1]` with `m = nᵀ K_f`."""
+    u, v = uv[:, 0:1], uv[:, 1:2]
+    m = n @ K_f
+    return (u * K_f[:, 0] + v * K_f[:, 1] + K_f[:, 2]) / (u * m[0] + v * m[1] + m[2])
+
+
+def numpy_eq13(K_f, n, R, t, c, s, uv):
+    """Eq. (13) after eq. (3) on `(frames, points, 2)` pixels: `X_m = R_i (R X_c + t)`,
+    `R_i` about z by the frame's angle (`c`, `s`: its cosine and sine, `(frames, 1)`)."""
+    X = numpy_eq3_broadcast(K_f, n, uv.reshape(-1, 2))
+    X = X[:, 0:1] * R[:, 0] + X[:, 1:2] * R[:, 1] + X[:, 2:3] * R[:, 2] + t  # no BLAS
+    X = X.reshape(uv.shape[:-1] + (3,))
+    x, y = X[..., 0], X[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y, X[..., 2]], axis=-1)
 
 
 def _best(fn, repeats: int) -> float:
@@ -50,18 +78,31 @@ def _best(fn, repeats: int) -> float:
     return best
 
 
-def _best_wall_cpu(fn, repeats: int) -> tuple[float, float]:
-    """Best wall seconds and best CPU seconds (this process, all threads) of `repeats`.
+def _interleaved(fns: dict, repeats: int) -> dict:
+    """Median and best wall and CPU seconds (this process, all threads) of each function,
+    the functions called in turn within each repeat (one warm-up call each first), so
+    that a change of the machine's load falls on all of them alike.
 
     On a shared machine the CPU time is the load-independent measure: a run that waits
     for a core shows in the wall time only."""
-    wall = cpu = np.inf
-    for _ in range(repeats):
-        c, t = time.process_time(), time.perf_counter()
+    for fn in fns.values():
         fn()
-        wall = min(wall, time.perf_counter() - t)
-        cpu = min(cpu, time.process_time() - c)
-    return wall, cpu
+    wall = {k: [] for k in fns}
+    cpu = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            c, t = time.process_time(), time.perf_counter()
+            fn()
+            wall[k].append(time.perf_counter() - t)
+            cpu[k].append(time.process_time() - c)
+    return {
+        k: {
+            "wall": float(np.median(wall[k])),
+            "cpu": float(np.median(cpu[k])),
+            "wall_best": float(np.min(wall[k])),
+        }
+        for k in fns
+    }
 
 
 def copy_bandwidth(nbytes: int = 1 << 28, repeats: int = 5) -> float:
@@ -76,8 +117,36 @@ def _pixels(n: int, dtype) -> np.ndarray:
     return (rng.random((n, 2)) * [1599.0, 1199.0]).astype(dtype)
 
 
+def _rows_for(op, size, n, t, keys_ours, baselines, bandwidth, first, item, err, threads):
+    """Table rows: each of our variants against the faster NumPy variant (medians)."""
+    base = min(baselines, key=lambda k: t[k]["wall"])
+    rows = []
+    for key, label in keys_ours:
+        w, c = t[key]["wall"], t[key]["cpu"]
+        gbs = n * (5 * item + 1) / w / 1e9
+        others = ", ".join(f"{lab} {n / t[k]['wall'] / 1e6:.0f}" for k, lab in baselines.items())
+        rows.append(
+            {
+                "operation": f"{op}{label}",
+                "size": size,
+                "ours": f"{n / w / 1e6:.0f} Mpts/s",
+                "baseline": f"{n / t[base]['wall'] / 1e6:.0f} Mpts/s (NumPy {baselines[base]})",
+                "ratio": t[base]["wall"] / w,
+                "compile_s": max(first - w, 0.0) if key == keys_ours[0][0] else None,
+                "note": f"medians; NumPy {others} Mpts/s; best wall "
+                f"{n / t[key]['wall_best'] / 1e6:.0f} Mpts/s; {gbs:.1f} GB/s = "
+                f"{gbs / bandwidth:.0%} of copy; CPU time {n / c / 1e6:.0f} vs "
+                f"{n / t[base]['cpu'] / 1e6:.0f} Mpts/s ({t[base]['cpu'] / c:.2f}×, ours on "
+                f"{threads} threads); max abs dX {err * 1e3:.2g} µm vs float64 NumPy",
+            }
+        )
+        print(_row(rows[-1]), flush=True)
+    return rows
+
+
 def bench_camera(sizes, repeats: int, bandwidth: float) -> list[dict]:
-    import jax
+    """`stripe_to_camera` (a fresh result per call, and `out=` the previous result)
+    against NumPy eq. (3) (matrix products, and broadcasts), interleaved, medians."""
     import jax.numpy as jnp
 
     import scheimflux as sf
@@ -90,37 +159,107 @@ def bench_camera(sizes, repeats: int, bandwidth: float) -> list[dict]:
         for dtype in (np.float32, np.float64):
             uv_np = _pixels(n, dtype)
             uv = jnp.asarray(uv_np)
+            box = {}
 
             def ours():
                 return sf.stripe_to_camera(cam, plane, uv).points.block_until_ready()
 
-            t = time.perf_counter()
+            def ours_out():
+                box["rec"] = sf.stripe_to_camera(cam, plane, uv, out=box["rec"])
+                box["rec"].points.block_until_ready()
+
+            t0 = time.perf_counter()
             rec = ours()
-            first = time.perf_counter() - t
-            t_ours, c_ours = _best_wall_cpu(ours, repeats)
+            first = time.perf_counter() - t0
+            box["rec"] = sf.stripe_to_camera(cam, plane, uv)
             K, nn = K_f.astype(dtype), n_vec.astype(dtype)
-            t_np, c_np = _best_wall_cpu(lambda: numpy_eq3(K, nn, uv_np), repeats)
+            fns = {
+                "ours": ours,
+                "ours_out": ours_out,
+                "np_blas": lambda: numpy_eq3(K, nn, uv_np),
+                "np_bcast": lambda: numpy_eq3_broadcast(K, nn, uv_np),
+            }
+            t = _interleaved(fns, repeats if n < 10**7 else max(3, repeats // 2))
             ref = numpy_eq3(K_f, n_vec, uv_np.astype(np.float64))
             err = float(np.nanmax(np.abs(np.asarray(rec, np.float64) - ref)))
-            item = np.dtype(dtype).itemsize
-            gbs = n * (5 * item + 1) / t_ours / 1e9
-            rows.append(
-                {
-                    "operation": f"stripe_to_camera {np.dtype(dtype).name}",
-                    "size": f"{n:.0e} pts",
-                    "ours": f"{n / t_ours / 1e6:.0f} Mpts/s",
-                    "baseline": f"{n / t_np / 1e6:.0f} Mpts/s (NumPy eq. 3)",
-                    "ratio": t_np / t_ours,
-                    "compile_s": max(first - t_ours, 0.0),
-                    "note": f"{gbs:.1f} GB/s = {gbs / bandwidth:.0%} of copy; CPU time: "
-                    f"{n / c_ours / 1e6:.0f} vs {n / c_np / 1e6:.0f} Mpts/s "
-                    f"({c_np / c_ours:.2f}×, ours on {os.cpu_count()} threads); "
-                    f"max abs dX {err * 1e3:.2g} µm vs float64 NumPy",
-                }
+            assert np.array_equal(np.asarray(box["rec"].points), np.asarray(rec), equal_nan=True)
+            rows += _rows_for(
+                f"stripe_to_camera {np.dtype(dtype).name}",
+                f"{n:.0e} pts",
+                n,
+                t,
+                [("ours", ""), ("ours_out", ", out= reused")],
+                {"np_blas": "eq. 3 matmul", "np_bcast": "eq. 3 broadcast"},
+                bandwidth,
+                first,
+                np.dtype(dtype).itemsize,
+                err,
+                os.cpu_count(),
             )
-            print(_row(rows[-1]), flush=True)
+            box.clear()
             del rec
-    del jax
+    return rows
+
+
+def bench_measurement(sizes, repeats: int, bandwidth: float) -> list[dict]:
+    """`stripe_to_measurement` float32 on `(1000, n / 1000, 2)` pixels, one frame index
+    per row, against NumPy eq. (3) + (13), interleaved, medians."""
+    import math
+
+    import jax.numpy as jnp
+
+    import scheimflux as sf
+
+    cam, plane = sf.paper_thick_lens("scheimpflug-1.5"), sf.paper_laser_plane()
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t_mc, dw = np.array([1.0, 2.0, 300.0]), math.radians(0.5)
+    stage = sf.RotaryStage(R, t_mc, dw)
+    K_f, n_vec = np.asarray(cam.K_f), np.asarray(plane.n)
+    rows = []
+    for n in sizes:
+        dtype = np.float32
+        frames = 1000
+        uv_np = _pixels(n, dtype).reshape(frames, n // frames, 2)
+        uv, fi = jnp.asarray(uv_np), jnp.arange(frames, dtype=jnp.int32)[:, None]
+        ang = np.arange(frames)[:, None] * dw
+        c, s = np.cos(ang).astype(dtype), np.sin(ang).astype(dtype)
+        K, nn, RR, tt = (x.astype(dtype) for x in (K_f, n_vec, R, t_mc))
+        box = {}
+
+        def ours():
+            return sf.stripe_to_measurement(cam, plane, stage, uv, fi).points.block_until_ready()
+
+        def ours_out():
+            box["rec"] = sf.stripe_to_measurement(cam, plane, stage, uv, fi, out=box["rec"])
+            box["rec"].points.block_until_ready()
+
+        t0 = time.perf_counter()
+        rec = ours()
+        first = time.perf_counter() - t0
+        box["rec"] = sf.stripe_to_measurement(cam, plane, stage, uv, fi)
+        fns = {
+            "ours": ours,
+            "ours_out": ours_out,
+            "np13": lambda: numpy_eq13(K, nn, RR, tt, c, s, uv_np),
+        }
+        t = _interleaved(fns, repeats if n < 10**7 else max(3, repeats // 2))
+        ref = numpy_eq13(K_f, n_vec, R, t_mc, np.cos(ang), np.sin(ang), uv_np.astype(float))
+        err = float(np.nanmax(np.abs(np.asarray(rec, np.float64) - ref)))
+        rows += _rows_for(
+            "stripe_to_measurement float32",
+            f"{n:.0e} pts",
+            n,
+            t,
+            [("ours", ""), ("ours_out", ", out= reused")],
+            {"np13": "eq. 3 + 13 broadcast"},
+            bandwidth,
+            first,
+            4,
+            err,
+            os.cpu_count(),
+        )
+        box.clear()
+        del rec
     return rows
 
 
@@ -172,9 +311,10 @@ def bench_stream(frame_counts) -> list[dict]:
                     raise RuntimeError(r.stderr[-2000:])
                 dt, rss, size = r.stdout.split()[-3:]
                 res[mode] = (float(dt), int(rss), int(size))
-            same = open(os.path.join(tmp, f"memory{F}.ply"), "rb").read() == open(
-                os.path.join(tmp, f"stream{F}.ply"), "rb"
-            ).read()
+            same = (
+                open(os.path.join(tmp, f"memory{F}.ply"), "rb").read()
+                == open(os.path.join(tmp, f"stream{F}.ply"), "rb").read()
+            )
             n = F * 1600
             ts, tm = res["stream"][0], res["memory"][0]
             rows.append(
@@ -207,18 +347,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-points", type=float, default=1e7)
     ap.add_argument("--quick", action="store_true", help="up to 1e5 points, 2 repeats")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=9, help="median of this many (1e7: half)")
+    ap.add_argument("--min-points", type=float, default=1e4)
     ap.add_argument("--stream-frames", default="1000,10000", help="frame counts, or ''")
     ap.add_argument("--json", metavar="ROWS.json", help="also write the rows as JSON")
     args = ap.parse_args(argv)
     max_n = 1e5 if args.quick else args.max_points
     repeats = 2 if args.quick else args.repeats
     bw = copy_bandwidth()
-    print(f"load: {os.getloadavg()}  NumPy copy bandwidth {bw:.1f} GB/s")
+    print(f"load: {os.getloadavg()}  NumPy copy bandwidth {bw:.1f} GB/s", flush=True)
     print("| operation | size | ours | baseline | ratio | compile s | note |")
     print("|---|---|---|---|---|---|---|")
-    sizes = [int(10**k) for k in range(4, 8) if 10**k <= max_n]
+    sizes = [int(10**k) for k in range(4, 8) if args.min_points <= 10**k <= max_n]
     rows = bench_camera(sizes, repeats, bw)
+    rows += bench_measurement([x for x in sizes if x >= 10**6], repeats, bw)
     counts = [int(x) for x in args.stream_frames.split(",") if x.strip()]
     if args.quick:
         counts = [c for c in counts if c <= 1000] or counts[:1]

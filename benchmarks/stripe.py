@@ -4,9 +4,10 @@ Accuracy: bias and RMS (px) of the centre across the stripe for band Steger, ful
 Steger and the grey centroid, for stripe widths 3, 5, 8 px (FWHM) and dark/low/bright
 ambient light (tilted, gently curved stripe, SNR 20, 8-bit).
 Speed: frames/s on 1600 x 1200 8-bit frames for band Steger (one thread, with the
-compiled per-scan-line loops and with their NumPy reference; and the multi-frame API with
-a thread pool), and for a full-frame OpenCV Steger baseline (Gaussian derivative filters
-over the whole frame, per-column maximum) run here.
+compiled per-scan-line loops and with their NumPy reference; the multi-frame API with
+a thread pool; and one process per CPU, each on its share of the frames), and for a
+full-frame OpenCV Steger baseline (Gaussian derivative filters over the whole frame,
+per-column maximum) run here.
 Captures (issue 9): one row per realistic scene of `sf.simulate.render_capture`
 (laser on a dimmed checkerboard through the paper rig's ray tracer, circle grid,
 oblique and vertical lines, colour with white ambient light, saturated core, glints,
@@ -24,6 +25,7 @@ Stages (`--stages`): CPU time per stage of `extract_stripe` on the plain speed f
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import time
 
@@ -95,6 +97,38 @@ def rate(fn, frames) -> tuple[float, float]:
     return len(frames) / (time.perf_counter() - t0), len(frames) / (time.process_time() - c0)
 
 
+def _process_worker(n_frames: int, barrier, queue) -> None:
+    """One process of `process_rate`: its own frames, one warm-up, then timed."""
+    cv2.setNumThreads(1)
+    frames = _speed_frames(n_frames)
+    for f in frames[:2]:
+        extract_stripe(f, width_px=5)
+    barrier.wait()
+    t0, c0 = time.perf_counter(), time.process_time()
+    for f in frames:
+        extract_stripe(f, width_px=5)
+    queue.put((t0, time.perf_counter(), time.process_time() - c0))
+
+
+def process_rate(n_frames: int, workers: int) -> tuple[float, float]:
+    """Band Steger frames/s over `workers` processes (spawned, one thread each), each
+    extracting its share of the `n_frames` frames; all start together after their
+    warm-up (a barrier), and the wall time runs from the first start to the last end
+    (`perf_counter` is the system's monotonic clock, common to the processes). The
+    second number is frames per CPU-second summed over the processes."""
+    ctx = multiprocessing.get_context("spawn")
+    barrier, queue = ctx.Barrier(workers), ctx.Queue()
+    shares = [n_frames // workers + (i < n_frames % workers) for i in range(workers)]
+    procs = [ctx.Process(target=_process_worker, args=(k, barrier, queue)) for k in shares]
+    for p in procs:
+        p.start()
+    res = [queue.get() for _ in procs]
+    for p in procs:
+        p.join()
+    wall = max(r[1] for r in res) - min(r[0] for r in res)
+    return n_frames / wall, n_frames / sum(r[2] for r in res)
+
+
 def speed_table(n_frames: int) -> None:
     frames = _speed_frames(n_frames)
     sigma = steger_sigma(5.0)
@@ -119,6 +153,11 @@ def speed_table(n_frames: int) -> None:
     results[f"band Steger, extract_stripes ({os.cpu_count()} threads)"] = rate(
         lambda fs: extract_stripes(fs, width_px=5), frames
     )
+    workers = os.cpu_count() or 1
+    if workers > 1:
+        results[f"band Steger, {workers} processes (1 thread each)"] = process_rate(
+            n_frames, workers
+        )
     few = frames[: max(4, n_frames // 20)]
     results[f"full-frame OpenCV Steger baseline ({cv2.getNumThreads()} cv2 threads)"] = rate(
         lambda fs: [opencv_full_frame_steger(f, sigma) for f in fs], few

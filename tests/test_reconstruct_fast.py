@@ -149,6 +149,58 @@ def test_measurement_fast_equals_reference(name):
     np.testing.assert_allclose(fast.points, ref.points, rtol=1e-12)
 
 
+@pytest.mark.parametrize("name", ["thick", "distorted", "pinhole"])
+def test_out_buffers_are_reused(name):
+    # `out=`: the result is written into the previous result's buffers (no fresh
+    # allocation, docs/throughput.md) and equals a fresh call bit for bit, also where
+    # the reused buffer held other points (different pixels first: stale values would
+    # show) and NaN/status codes change between the calls.
+    cam, plane = _cameras()[name], sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    uv0 = jnp.asarray(_pixels(300, seed=1).reshape(3, 100, 2))
+    uv1 = jnp.asarray(_pixels(300, seed=2).reshape(3, 100, 2))
+    fi = jnp.arange(3)[:, None]
+    calls = {
+        "camera": lambda uv, **kw: sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR, **kw),
+        "measurement": lambda uv, **kw: sf.stripe_to_measurement(
+            cam, plane, stage, uv, fi, sensor_size=SENSOR, **kw
+        ),
+    }
+    for call in calls.values():
+        fresh = call(uv1)
+        old = call(uv0)
+        ptr = old.points.unsafe_buffer_pointer(), old.status.unsafe_buffer_pointer()
+        new = call(uv1, out=old)
+        assert old.points.is_deleted() and old.status.is_deleted()
+        assert (new.points.unsafe_buffer_pointer(), new.status.unsafe_buffer_pointer()) == ptr
+        np.testing.assert_array_equal(np.asarray(new.status), np.asarray(fresh.status))
+        np.testing.assert_array_equal(np.asarray(new.points), np.asarray(fresh.points))
+        assert np.any(np.asarray(fresh.status) != np.asarray(call(uv0).status))
+        with pytest.raises(ValueError, match="out does not match"):
+            call(uv1[:, :50], out=new)
+        with pytest.raises(ValueError, match="out does not match"):
+            call(uv1.astype(jnp.float32), out=new)
+        with pytest.raises(TypeError):  # the type check or `_out_buffers`
+            call(uv1, out=(new.points, new.status))
+
+
+
+def test_out_buffer_viewed_from_numpy_is_not_overwritten():
+    # A previous result still viewed from NumPy (`np.asarray` shares the buffer on CPU)
+    # must keep its values: XLA then does not reuse that buffer, and the call still
+    # returns the right result.
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    uv0, uv1 = jnp.asarray(_pixels(200, seed=3)), jnp.asarray(_pixels(200, seed=4))
+    old = sf.stripe_to_camera(cam, plane, uv0)
+    view = np.asarray(old.points)
+    kept = view.copy()
+    new = sf.stripe_to_camera(cam, plane, uv1, out=old)
+    np.testing.assert_array_equal(view, kept)
+    np.testing.assert_array_equal(
+        np.asarray(new.points), np.asarray(sf.stripe_to_camera(cam, plane, uv1).points)
+    )
+
+
 def _batch_loops(compiled_text: str, n: int) -> list[str]:
     """The top-level instructions of the entry computation that loop over the `n` pixels
     (fusions or unfused element-wise ops whose result has a dimension `n`)."""

@@ -18,7 +18,9 @@ from ._kernel import (
     DEGENERATE_PLANE_MM as DEGENERATE_PLANE_MM,
     PARALLEL_COS as PARALLEL_COS,
     fast_stripe_to_camera,
+    fast_stripe_to_camera_into,
     fast_stripe_to_measurement,
+    fast_stripe_to_measurement_into,
     has_fast_path,
     plane_ok as _plane_ok,
 )
@@ -172,6 +174,7 @@ def stripe_to_camera(
     *,
     sensor_size: tuple[int, int] | None = None,
     coverage=None,
+    out: Reconstruction | None = None,
 ) -> Reconstruction:
     """Reconstruct laser-stripe pixels as 3-D points in the camera frame (paper eq. 3).
 
@@ -189,6 +192,12 @@ def stripe_to_camera(
       `[-0.5, width - 0.5] × [-0.5, height - 0.5]` get `Status.OUTSIDE_SENSOR`.
     - `coverage`: optional `calibrate.Coverage` (`cal.coverage`): fills `in_coverage`
       (the points and their status are the same with or without it).
+    - `out`: optional previous `Reconstruction` of the same batch shape and dtype whose
+      `points` and `status` buffers are reused for the result (donated: they are
+      deleted by the call; use the returned object). For repeated calls on large
+      batches: a fresh result costs one page fault per 4 KiB of output on first write
+      (docs/throughput.md). A buffer still viewed from NumPy is not reused (the view
+      keeps its values). Ignored for cameras without the fused kernel.
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
@@ -198,11 +207,31 @@ def stripe_to_camera(
     uv = as_points(uv, 2, "uv")
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
-        rec = Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
+        if out is None:
+            rec = Reconstruction(*fast_stripe_to_camera(camera, plane, uv, sensor))
+        else:
+            buf = _out_buffers(out, uv)
+            rec = Reconstruction(*fast_stripe_to_camera_into(camera, plane, uv, buf, sensor))
     else:
         camera, plane = _cast_floats((camera, plane), uv.dtype)
         rec = reference_stripe_to_camera(camera, plane, uv, sensor)
     return _with_coverage(rec, coverage, uv)
+
+
+def _out_buffers(out, uv) -> tuple:
+    """`(points, status)` of `out`, checked against the result `uv` will give."""
+    if not isinstance(out, Reconstruction):
+        raise TypeError(f"out must be a Reconstruction, got {type(out).__name__}")
+    batch = uv.shape[:-1]
+    p, s = out.points, out.status
+    if not (isinstance(p, jax.Array) and isinstance(s, jax.Array)):
+        raise TypeError("out.points and out.status must be JAX arrays (a previous result)")
+    if p.shape != batch + (3,) or p.dtype != uv.dtype or s.shape != batch or s.dtype != jnp.int8:
+        raise ValueError(
+            f"out does not match the result: points {p.shape} {p.dtype}, status {s.shape} "
+            f"{s.dtype}; need {batch + (3,)} {uv.dtype} and {batch} int8"
+        )
+    return p, s
 
 
 def _with_coverage(rec: Reconstruction, coverage, uv) -> Reconstruction:
@@ -233,6 +262,7 @@ def stripe_to_measurement(
     *,
     sensor_size: tuple[int, int] | None = None,
     coverage=None,
+    out: Reconstruction | None = None,
 ) -> Reconstruction:
     """Reconstruct stripe pixels in the measurement (rotary-table) frame (paper eq. 13).
 
@@ -247,7 +277,7 @@ def stripe_to_measurement(
       `(frames, points, 2)` pixels. An index with fewer axes than the batch is refused
       rather than guessed: `(frames,)` against `(frames, points)` would be read along the
       points by NumPy's rules when `frames == points`.
-    - `sensor_size`, `coverage`: as in `stripe_to_camera`.
+    - `sensor_size`, `coverage`, `out`: as in `stripe_to_camera`.
 
     **Returns:** a `Reconstruction` in the measurement frame.
     """
@@ -273,7 +303,12 @@ def stripe_to_measurement(
     if has_fast_path(camera):
         # Unbroadcast: the kernel takes cos/sin once per frame, then broadcasts.
         fi = jnp.asarray(fi)
-        rec = Reconstruction(*fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor))
+        if out is None:
+            res = fast_stripe_to_measurement(camera, plane, stage, uv, fi, sensor)
+        else:
+            buf = _out_buffers(out, uv)
+            res = fast_stripe_to_measurement_into(camera, plane, stage, uv, fi, buf, sensor)
+        rec = Reconstruction(*res)
         return _with_coverage(rec, coverage, uv)
     camera, plane, stage = _cast_floats((camera, plane, stage), uv.dtype)
     fi = jnp.broadcast_to(jnp.asarray(fi), batch)
