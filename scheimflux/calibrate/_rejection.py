@@ -12,16 +12,16 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_jit
 from ._camera import _corner_errors
 from ._gates import outlier_masks
 from ._model import CalibrationData
 from ._plane import _laser_residuals_jit
 from ._solve import ONE_SHOT, least_squares
-from ._stage_table import table_stripe_residuals, table_target_errors_px
+from ._stage_table import _errors_jit as _table_errors_jit, table_stripe_residuals
 
 # run once per rejection pass: compiled as the other one-shot programs
-_table_errors_jit = eqx.filter_jit(table_target_errors_px, compiler_options=ONE_SHOT)
-_table_stripe_jit = eqx.filter_jit(table_stripe_residuals, compiler_options=ONE_SHOT)
+_table_stripe_jit = exported_jit(table_stripe_residuals, compiler_options=ONE_SHOT)
 
 LEFT_OUT_BLOCKS = ("corners", "stripe", "gauge", "table_corners", "table_stripe")
 

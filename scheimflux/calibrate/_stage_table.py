@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._export import exported_jit
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
 from ..io._observations import Observations, StageTargetViews, View
@@ -140,7 +141,7 @@ def table_stripe_residuals(params, data, X=None) -> Float[Array, " n"]:
 
 
 # run once per calibration (summaries): compiled as the other one-shot programs
-_errors_jit = eqx.filter_jit(table_target_errors_px, compiler_options=ONE_SHOT)
+_errors_jit = exported_jit(table_target_errors_px, compiler_options=ONE_SHOT)
 
 
 def table_target_rms_px(params, data) -> float:
