@@ -25,10 +25,15 @@ from ._result import Calibration
 from ._stage_warning import axis_warning, calibration_axis_conditioning
 
 
-def _gated(cal: Calibration, rejected: dict, conditioning, throw: bool) -> Calibration:
+def _gated(
+    cal: Calibration, rejected: dict, conditioning, throw: bool, notes: tuple[str, ...] = ()
+) -> Calibration:
     """`cal` with its quality gates assessed and its coverage of the sensor recorded;
-    `QualityError` (with `throw`) if a gate fails."""
+    `QualityError` (with `throw`) if a gate fails. `notes`: further warnings (e.g. the
+    gauge profile's)."""
     quality = assess_quality(cal, rejected, conditioning)
+    if notes:
+        quality = dataclasses.replace(quality, warnings=quality.warnings + tuple(notes))
     coverage = coverage_from_data(cal.data, cal.sensor_size)
     cal = dataclasses.replace(cal, quality=quality, coverage=coverage)
     if throw and not quality.passed:
