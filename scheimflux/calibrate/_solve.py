@@ -143,11 +143,13 @@ def _dense_jacobian(structure, B: np.ndarray) -> np.ndarray:
     return J
 
 
-def _released(structure, B, r, free, reported, params, spec) -> Released | None:
-    """[`Released`][] for the parameters reported free but held in the solve."""
+def _released(structure, B, r, free, reported, labels) -> Released | None:
+    """[`Released`][] for the parameters reported free but held in the solve (`labels`:
+    the state vector's names, or a callable giving them)."""
     ip = np.flatnonzero(reported & ~free)
     if ip.size == 0:
         return None
+    labels = labels() if callable(labels) else labels
     J = _dense_jacobian(structure, B)
     iq = np.flatnonzero(free)
     col = np.linalg.norm(J, axis=0)
@@ -155,7 +157,6 @@ def _released(structure, B, r, free, reported, params, spec) -> Released | None:
     Q, _ = np.linalg.qr(J[:, iq] * d[iq])
     Jp = J[:, ip]
     P = Jp - Q @ (Q.T @ Jp)
-    labels = parameter_labels(params, spec)
     return Released(tuple(labels[i] for i in ip), P.T @ r, P.T @ P)
 
 
@@ -544,7 +545,14 @@ def least_squares(
         n_observations=int(np.count_nonzero(r_h)),
         result=result,
         stats=stats,
-        released=_released(end_structure, np.asarray(B_end), r_h, free, reported, params, spec),
+        released=_released(
+            end_structure,
+            np.asarray(B_end),
+            r_h,
+            free,
+            reported,
+            lambda: parameter_labels(params, spec),
+        ),
     )
     if throw and not ok:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {message}", fit)
