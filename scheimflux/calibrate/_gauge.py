@@ -20,12 +20,21 @@ centre); the tilt has no part in either (docs/noncentral.md lists them). Holding
 axis point is no gauge either: held at the sensor centre 29 px from the true axis it
 biased noise-free distances by 0.28 µm. Freeing both (pitch and `f` held,
 `distorted_freeze`) is the exact gauge, but Levenberg–Marquardt then creeps along the
-weak axis-point valley (8 corner-only views of that scene: not converged in 200 steps).
-So the default (`DEFAULT_FREEZE`, tilt held) is NOT changed yet: issue 16 part 1 is
-measured here, not solved; the likely fix is a weak prior residual block on the axis
-point (or on the tilt) toward its nominal value. `distorted_freeze` and
-`solve_with_gauge` (free, fall back to the held gauge on a rank-deficient solve) are
-the pieces for it.
+weak, curved axis-point valley (8 corner-only views of that scene: not converged in 200
+steps).
+
+`gauge="profile"` (`calibrate`, `calibrate_camera`; not the default) frees the tilt and
+places the axis point by variable projection (`profile_axis_point`): every inner solve
+holds `(x0, y0)` at run time (the same compiled program), and outer steps use the
+profile's gradient and Gauss–Newton Hessian from `least_squares(..., release=...)`
+(`_solve.Released`, a QR of the Jacobian: formed from `JᵀJ` the Schur complement loses
+every digit along this direction). The profile is not convex (three basins on the
+50 mm scene), so y0 is placed first, x0 scanned across the sensor, and a trust-region
+quasi-Newton steps on both coordinates finish. Noise free it makes a nominal tilt ±1° off change
+distances by ≤ 2e-5 µm (target 0.005 µm); on noisy 8-view data it converged and kept
+the axis point on the sensor, but its distance errors were slightly larger than the
+held gauge's (0.034–0.051 against 0.027–0.045 µm, 3 seeds) at 2.4× the compiled time,
+so the held gauge stays the default (docs/noncentral.md).
 
 `gauge_spectrum` computes these singular values and directions for any solve.
 """

@@ -150,6 +150,7 @@ def _released(structure, B, r, free, reported, labels) -> Released | None:
     if ip.size == 0:
         return None
     labels = labels() if callable(labels) else labels
+    B = np.asarray(B)
     J = _dense_jacobian(structure, B)
     iq = np.flatnonzero(free)
     col = np.linalg.norm(J, axis=0)
@@ -547,7 +548,7 @@ def least_squares(
         stats=stats,
         released=_released(
             end_structure,
-            np.asarray(B_end),
+            B_end,
             r_h,
             free,
             reported,
