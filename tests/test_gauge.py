@@ -128,12 +128,16 @@ def test_rounded_nominal_tilt_does_not_change_distances(scene):
 
 @pytest.mark.slow
 def test_gauge_singular_values(scene):
-    # With only the pixel pitch frozen the distorted thick lens has ONE null direction,
-    # along (f, z0, e): its relative singular value is at rounding level, and freezing f
-    # lifts the smallest one by more than an order of magnitude. The next weakest is the
-    # axis point against the boards' translations; the tilt has no large part in either.
+    # With only the pixel pitch frozen the weakest direction of the distorted thick lens
+    # is along (f, z0, e), and freezing f lifts the smallest singular value to the next,
+    # the axis point against the boards' translations; the tilt has no large part in
+    # either. Linearised at the profile gauge's optimum (tilt free, converged; the held
+    # default does not converge on this scene in 200 LM steps), measured: 1.02e-7
+    # (f, z0, e), then 3.6e-7 (x0) and 1.3e-6 (y0); f held: 3.8e-7 (x0). The (f, z0, e)
+    # direction is only 3.7x below the x0 one here (at the held default's end point it
+    # was more than 10x): the bound below is 3x.
     _, obs, truth = scene
-    cc, _, _ = _points(obs, truth)
+    cc, _, _ = _points(obs, truth, gauge="profile")
     data = make_data(obs)
     free = gauge_spectrum(camera_residuals, cc.fit.params, data, PIXEL_PITCH)
     held = gauge_spectrum(camera_residuals, cc.fit.params, data, PIXEL_PITCH + ("camera.f",))
@@ -142,7 +146,7 @@ def test_gauge_singular_values(scene):
     s_null, comps = free.directions[0]
     names = {lab for lab, _ in comps}
     assert s_null < 1e-6 and "camera.f" in names
-    assert held.singular_values[-1] > 10 * s_null
+    assert held.singular_values[-1] > 3 * s_null
     s_weak, weak = held.directions[0]
     assert {"camera.x0", "camera.y0"} & {lab for lab, _ in weak}
     for _, cs in (free.directions[0], held.directions[0]):
