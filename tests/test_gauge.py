@@ -5,7 +5,6 @@ noise-free, so every difference between two calibrations is the gauge's doing (o
 solver's tolerance), not noise.
 """
 
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,12 +12,15 @@ import pytest
 import scheimflux as sf
 from scheimflux.calibrate import DEFAULT_FREEZE, calibrate_camera, fit_laser_plane, with_nominal
 from scheimflux.calibrate._gauge import (
+    AXIS_POINT,
     DISTORTED_GAUGE,
+    GAUGE_HELD,
     PIXEL_PITCH,
     distorted_freeze,
     gauge_spectrum,
 )
 from scheimflux.calibrate._model import camera_residuals, make_data
+from scheimflux.calibrate._solve import _dense, _released
 from scheimflux.simulate import build_rig, load_lens, paraxial, simulate_observations
 from scheimflux.targets import Checkerboard
 
@@ -28,6 +30,35 @@ def test_distorted_freeze_releases_the_tilt_and_axis_point():
         ideal = DEFAULT_FREEZE[("thick-lens", how)]
         assert set(distorted_freeze(ideal)) == set(PIXEL_PITCH + DISTORTED_GAUGE)
         assert "camera.phi" not in distorted_freeze(ideal)
+
+
+def test_released_profile_matches_the_linear_least_squares_profile():
+    # For linear residuals r = A p + C q - b the profile c(p) = min_q ½|r|² is a quadratic
+    # with Hessian A_pᵀ(I - P_C)A_p and gradient A_pᵀ(I - P_C)(A p - b) (P_C the projector
+    # onto C's columns), whatever q is. Derived independently here by eliminating q with
+    # lstsq; the columns are given badly different scales and a near-collinear pair (the
+    # axis point against the boards' translations) to exercise the QR path.
+    rng = np.random.default_rng(3)
+    N, n_q = 400, 12
+    C = rng.standard_normal((N, n_q)) * np.logspace(-3, 3, n_q)
+    A = rng.standard_normal((N, 2))
+    A[:, 0] = C[:, 0] * 1e-3 + 1e-6 * A[:, 0]  # nearly in C's span: a weak profile
+    b = rng.standard_normal(N)
+    p, q = rng.standard_normal(2), rng.standard_normal(n_q)  # q not the optimum
+    J = np.concatenate([C[:, :4], A, C[:, 4:]], axis=1)  # p in the middle of the state
+    r = J @ np.concatenate([q[:4], p, q[4:]]) - b
+    free = np.ones(n_q + 2, bool)
+    free[4:6] = False
+    labels = [f"q{i}" for i in range(4)] + ["x0", "y0"] + [f"q{i}" for i in range(4, n_q)]
+
+    rel = _released(_dense(n_q + 2, N), J, r, free, np.ones(n_q + 2, bool), labels)
+    assert rel.labels == ("x0", "y0")
+    Pc = C @ np.linalg.lstsq(C, np.eye(N), rcond=None)[0]
+    M = np.eye(N) - Pc
+    S = A.T @ M @ A
+    g = A.T @ M @ (A @ p - b)
+    np.testing.assert_allclose(rel.hessian, S, rtol=1e-6, atol=1e-9 * np.abs(S).max())
+    np.testing.assert_allclose(rel.gradient, g, rtol=1e-6, atol=1e-9 * np.abs(g).max())
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +79,9 @@ def scene():
     return rig, obs, truth
 
 
-def _points(obs, truth):
+def _points(obs, truth, **kw):
     """Camera + sequential plane (noise-free: the plane is exact up to the camera)."""
-    cc = calibrate_camera(obs)
+    cc = calibrate_camera(obs, **kw)
     plane = fit_laser_plane(cc.camera, cc.poses, obs, sigma_mm=1e-3).plane
     px = np.concatenate([np.asarray(p) for p in truth.stripe_px])
     idx = np.random.default_rng(0).choice(len(px), 150, replace=False)
@@ -64,39 +95,49 @@ def _distances(X):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="issue 16 part 1 not solved: the default still holds the nominal tilt (0.054 µm "
-    "for 1° measured); freeing tilt and axis point did not converge in 200 LM steps here",
-    strict=False,
-)
 def test_rounded_nominal_tilt_does_not_change_distances(scene):
     # Target (issue 16): a nominal tilt off by ±1° changes noise-free distances by
-    # ≤ 0.005 µm. Before the gauge was moved off the tilt this scene gave 0.054 µm.
-    # What remains is the solver's stopping tolerance (1e-5 σ of the unit-scaled state).
+    # ≤ 0.005 µm. The held gauge (the default) gives 0.054 µm for 1° on this scene;
+    # gauge="profile" frees the tilt and places the axis point at the minimum of the
+    # cost profile, so every start reaches the same optimum (measured: changes
+    # ≤ 2.1e-5 µm for the four ±1° cases). What is left is the profile's stopping
+    # tolerance (1e-3 of the axis point's σ ≈ 750 px, i.e. < 1 px, at ~2.5e-4 µm per px
+    # along the profile) and LM's (1e-5 σ of the unit-scaled state).
     rig, obs, truth = scene
     phi, theta = obs.nominal.tilt_deg
-    cc0, X0, truth_points = _points(obs, truth)
-    assert cc0.fit.converged
-    assert "camera.phi" not in cc0.freeze and "camera.f" in cc0.freeze
+    cc0, X0, truth_points = _points(obs, truth, gauge="profile")
+    assert cc0.fit.converged and cc0.axis_profile.converged
+    assert not cc0.axis_profile.at_bound
+    assert set(cc0.freeze) == set(GAUGE_HELD) and cc0.hold == AXIS_POINT
+    # the covariance's free set includes the axis point (it was held only in the solve)
+    assert {"camera.x0", "camera.y0", "camera.phi"} <= set(cc0.fit.labels)
     d0 = _distances(X0)
     err_um = float(np.sqrt(np.mean((d0 - _distances(truth_points)) ** 2))) * 1e3
-    print(f"distance error vs the ray tracer: {err_um:.4f} um")
-    assert err_um < 0.05  # measured 0.277 µm with the axis point held at the centre
-    for dphi, dtheta in ((1.0, -1.0), (-1.0, 1.0)):
-        cc, X, _ = _points(with_nominal(obs, tilt_deg=(phi + dphi, theta + dtheta)), truth)
-        assert cc.fit.converged
+    print(f"distance error vs the ray tracer: {err_um:.4f} um, {cc0.axis_profile}")
+    # measured 0.0066 µm (the axis point held at the sensor centre: 0.28 µm; the
+    # profile's other local minima, x0 ≈ 490 px and ≈ 1400-1600 px: 0.14 and 0.035 µm)
+    assert err_um < 0.02
+    for dphi, dtheta in ((1.0, -1.0), (-1.0, 1.0), (1.0, 1.0), (-1.0, -1.0)):
+        o = with_nominal(obs, tilt_deg=(phi + dphi, theta + dtheta))
+        cc, X, _ = _points(o, truth, gauge="profile")
+        assert cc.fit.converged and cc.axis_profile.converged
         change_um = float(np.sqrt(np.mean((_distances(X) - d0) ** 2))) * 1e3
+        print(f"nominal tilt {dphi:+}, {dtheta:+} deg: distances change {change_um:.2e} um")
         assert change_um <= 0.005, (dphi, dtheta, change_um)
 
 
 @pytest.mark.slow
 def test_gauge_singular_values(scene):
-    # With only the pixel pitch frozen the distorted thick lens has ONE null direction,
-    # along (f, z0, e): its relative singular value is at rounding level, and freezing f
-    # lifts the smallest one by more than an order of magnitude. The next weakest is the
-    # axis point against the boards' translations; the tilt has no large part in either.
+    # With only the pixel pitch frozen the weakest direction of the distorted thick lens
+    # is along (f, z0, e), and freezing f lifts the smallest singular value to the next,
+    # the axis point against the boards' translations; the tilt has no large part in
+    # either. Linearised at the profile gauge's optimum (tilt free, converged; the held
+    # default does not converge on this scene in 200 LM steps), measured: 1.02e-7
+    # (f, z0, e), then 3.6e-7 (x0) and 1.3e-6 (y0); f held: 3.8e-7 (x0). The (f, z0, e)
+    # direction is only 3.7x below the x0 one here (at the held default's end point it
+    # was more than 10x): the bound below is 3x.
     _, obs, truth = scene
-    cc, _, _ = _points(obs, truth)
+    cc, _, _ = _points(obs, truth, gauge="profile")
     data = make_data(obs)
     free = gauge_spectrum(camera_residuals, cc.fit.params, data, PIXEL_PITCH)
     held = gauge_spectrum(camera_residuals, cc.fit.params, data, PIXEL_PITCH + ("camera.f",))
@@ -105,7 +146,7 @@ def test_gauge_singular_values(scene):
     s_null, comps = free.directions[0]
     names = {lab for lab, _ in comps}
     assert s_null < 1e-6 and "camera.f" in names
-    assert held.singular_values[-1] > 10 * s_null
+    assert held.singular_values[-1] > 3 * s_null
     s_weak, weak = held.directions[0]
     assert {"camera.x0", "camera.y0"} & {lab for lab, _ in weak}
     for _, cs in (free.directions[0], held.directions[0]):

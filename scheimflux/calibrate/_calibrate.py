@@ -4,6 +4,7 @@ paper (§2.4) and jointly as one parameter pytree: the orchestration of the step
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import jax.numpy as jnp
@@ -17,6 +18,7 @@ from ._camera import (
     pixel_footprint_mm,
 )
 from ._gates import REJECT_SIGMA, screen_observations
+from ._gauge import profile_notes
 from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
 from ._quality import _gated
@@ -48,6 +50,7 @@ def calibrate(
     max_steps: int = 300,
     throw: bool = True,
     opencv_flags: Sequence[str] | str | None = None,
+    gauge: str = "held",
 ) -> Calibration:
     """Calibrate camera, laser plane and (if scanned) the rotary stage.
 
@@ -97,6 +100,10 @@ def calibrate(
       the result with `fit.converged` and `quality.passed` telling.
     - `opencv_flags`: the OpenCV model's terms (`model="opencv"` only; see
       [`calibrate_camera`][]).
+    - `gauge`: `"held"` (default) or `"profile"`: how the thick lens with distortion
+      fixes its weak directions (see [`calibrate_camera`][]; docs/noncentral.md). With
+      `"profile"` the joint solve holds the axis point at the camera profile's value and
+      the covariance has it free.
 
     **Returns:** a [`Calibration`][]: the parameter pytree (camera, board poses, laser
     plane, stage, eccentricity), every solve's `Fit`, the RMS figures, the data the
@@ -127,13 +134,17 @@ def calibrate(
         max_steps=max_steps,
         throw=throw,
         opencv_flags=opencv_flags,
+        gauge=gauge,
     )
+    hold = cam_cal.hold
+    notes = cam_cal.notes + profile_notes(cam_cal.axis_profile)
     if camera_only:
         cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust)
         rejected = {"threshold_sigma": reject}
         if reject is not None:
             rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
-        return _gated(cal, {**outside, **rejected}, None, throw, cam_cal.notes)
+        cal = dataclasses.replace(cal, axis_profile=cam_cal.axis_profile)
+        return _gated(cal, {**outside, **rejected}, None, throw, notes)
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
@@ -162,7 +173,14 @@ def calibrate(
         fn = joint_residuals if stage is not None else camera_plane_residuals
         extra = stage_extra_freeze(obs) if stage is not None else ()
         fit = least_squares(
-            fn, params, data, freeze=freeze + extra, max_steps=max_steps, throw=throw
+            fn,
+            params,
+            data,
+            freeze=freeze + extra,
+            hold=hold,
+            release=hold,
+            max_steps=max_steps,
+            throw=throw,
         )
         params = fit.params
         fits["joint"] = fit
@@ -178,6 +196,7 @@ def calibrate(
             reject,
             max_steps,
             throw,
+            hold,
         )
         if fit is not None:
             params, data = fit.params, _without(data, applied)
@@ -198,8 +217,9 @@ def calibrate(
         data=data,
         sensor_size=(int(obs.width), int(obs.height)),
         left_out=left_out,
+        axis_profile=cam_cal.axis_profile,
     )
-    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, cam_cal.notes)
+    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes)
 
 
 def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:

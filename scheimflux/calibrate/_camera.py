@@ -18,7 +18,15 @@ from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
-from ._gauge import ideal_freeze
+from ._gauge import (
+    AXIS_POINT,
+    GAUGE_HELD,
+    GAUGES,
+    IDEAL_GAUGE,
+    AxisProfile,
+    ideal_freeze,
+    profile_axis_point,
+)
 from ._init import (
     _directions,
     closed_form_pinhole,
@@ -30,7 +38,7 @@ from ._init import (
 from ._model import CalibrationData, SystemParams, camera_residuals, corner_errors_px, make_data
 from ._nested import nested_f_test
 from ._opencv import OPENCV_COEFFICIENTS, opencv_from_pinhole, opencv_frozen, parse_opencv_flags
-from ._solve import ONE_SHOT, Fit, least_squares
+from ._solve import ONE_SHOT, Fit, NotConvergedError, least_squares
 
 MODELS = ("thick-lens", "thick-lens-noncentral", "pinhole", "opencv")
 # the models built on the thick lens (nominal start, pixel pitch, distortion first)
@@ -97,6 +105,10 @@ class CameraCalibration:
     reprojection_rms_px: float
     init: str
     freeze: tuple = ()  # the parameter paths held fixed
+    # `gauge="profile"`: where the profile placed the axis point (held at that value in
+    # the solves, free in `fit`'s covariance); None for the held gauge
+    axis_profile: AxisProfile | None = None
+    hold: tuple = ()  # paths held at run time in the solves after this one (the axis point)
     notes: tuple[str, ...] = ()  # decisions of the solve (e.g. the pupil terms' test)
 
 
@@ -156,6 +168,7 @@ def calibrate_camera(
     max_steps: int = 200,
     throw: bool = True,
     opencv_flags: Sequence[str] | str | None = None,
+    gauge: str = "held",
 ) -> CameraCalibration:
     """Calibrate the camera from checkerboard corners (Levenberg–Marquardt).
 
@@ -189,6 +202,11 @@ def calibrate_camera(
       `cv2.projectPoints`): the terms beyond k1, k2, p1, p2, k3 —
       `"rational"`, `"thin-prism"`, `"tilted"` — and `"zero-tangent"`, `"fix-k3"`
       (`OPENCV_FLAGS`); a list or `"rational,tilted"`.
+    - `gauge`: the thick lens with distortion and `freeze=None`: `"held"` (the
+      default: the nominal tilt, or for a closed-form start the axis point, held in every
+      solve) or `"profile"` (only the pixel pitch and f held; the tilt free and the axis
+      point placed at the minimum of the cost profile, `_gauge.profile_axis_point`;
+      docs/noncentral.md). Ignored otherwise.
 
     **Returns:** a [`CameraCalibration`][]: the camera, the board poses, the final
     solve's `Fit`, the reprojection RMS (px per coordinate), how it was initialised and
@@ -215,9 +233,15 @@ def calibrate_camera(
             "the pinhole model (paper eq. 14) has no distortion; use "
             "distortion='none' or the thick-lens model"
         )
+    if gauge not in GAUGES:
+        raise ValueError(f"gauge must be one of {GAUGES}, got {gauge!r}")
     camera, poses, how = _initial(obs, model, init)
-    freeze = _model_freeze(model, how, freeze, opencv_flags)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
+    if gauge == "profile" and freeze is None and model in THICK_LENS_MODELS:
+        if distortion != "none":
+            camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
+            return _profiled(SystemParams(camera, poses), data, how, obs, model, max_steps, throw)
+    freeze = _model_freeze(model, how, freeze, opencv_flags)
     # The ideal camera first (the distortion at zero, held), then with the distortion
     # free. The distortion is held at run time (`hold`), not frozen: both solves have
     # the same state vector and run the same compiled program.
@@ -264,7 +288,7 @@ def calibrate_camera(
                                                             max_steps, throw)  # fmt: skip
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
-        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), notes
+        fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), notes=notes
     )
 
 
@@ -290,6 +314,42 @@ def _pupil_kept_if_significant(central, fit, start, data, freeze, max_steps, thr
         "to the data's precision"
     )
     return held, tuple(freeze) + ("camera.pupil",), (note,)
+
+
+def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibration:
+    """`gauge="profile"`: the thick lens with distortion, only the pixel pitch and f held.
+
+    One compiled Levenberg–Marquardt program (one state vector; what is held changes at
+    run time): the ideal camera (distortion and the ideal gauge held at their start
+    values: the nominal tilt, or the axis point for a closed-form start), the
+    distortion freed, then the tilt freed and the axis point placed at the minimum of
+    the cost profile by Newton steps (`profile_axis_point`), each inner solve holding it.
+    The returned fit reports the axis point free (`release`), so the covariance holds
+    its uncertainty.
+    """
+    ideal = tuple(p for p in IDEAL_GAUGE[how] if p not in GAUGE_HELD)
+
+    def solve(p, hold=AXIS_POINT, release=AXIS_POINT):
+        return least_squares(
+            camera_residuals, p, data, freeze=GAUGE_HELD, hold=hold, release=release,
+            max_steps=max_steps, throw=False,
+        )  # fmt: skip
+
+    first = solve(params, ideal + ("camera.distortion",), ())
+    second = solve(first.params, ideal, ())
+    fit = solve(second.params)
+    bounds = ((0.0, obs.width - 1.0), (0.0, obs.height - 1.0))
+    fit, profile = profile_axis_point(solve, fit, bounds=bounds)
+    if model == "thick-lens-noncentral":
+        # the central thick lens's optimum is the start, the pupil's shift from zero
+        camera = ThickLensNonCentral.from_central(fit.params.camera)
+        fit = solve(SystemParams(camera, fit.params.board_poses))
+    if throw and not fit.converged:
+        raise NotConvergedError(f"Levenberg–Marquardt did not converge: {fit.message}", fit)
+    rms = _rms_px(fit.params, data)
+    return CameraCalibration(
+        fit.params.camera, fit.params.board_poses, fit, rms, how, GAUGE_HELD, profile, AXIS_POINT
+    )
 
 
 # Compiled residual evaluation for the summaries (eager evaluation would dispatch every

@@ -28,12 +28,12 @@ from ._stage_warning import axis_warning, calibration_axis_conditioning
 def _gated(
     cal: Calibration, rejected: dict, conditioning, throw: bool, notes: tuple[str, ...] = ()
 ) -> Calibration:
-    """`cal` with its quality gates assessed and its coverage of the sensor recorded
-    (`notes`: the solves' decisions, added to the warnings); `QualityError` (with
-    `throw`) if a gate fails."""
+    """`cal` with its quality gates assessed and its coverage of the sensor recorded;
+    `QualityError` (with `throw`) if a gate fails. `notes`: the solves' decisions and
+    findings (the pupil terms' test, the gauge profile's), added to the warnings."""
     quality = assess_quality(cal, rejected, conditioning)
     if notes:
-        quality = dataclasses.replace(quality, warnings=tuple(notes) + quality.warnings)
+        quality = dataclasses.replace(quality, warnings=quality.warnings + tuple(notes))
     coverage = coverage_from_data(cal.data, cal.sensor_size)
     cal = dataclasses.replace(cal, quality=quality, coverage=coverage)
     if throw and not quality.passed:

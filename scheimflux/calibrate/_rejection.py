@@ -42,7 +42,7 @@ def apply_left_out(data: CalibrationData, left_out: dict) -> CalibrationData:
     """`data` with the observations of `left_out` (see `Calibration.left_out`) at weight
     0; `ValueError` when an index does not fit the data."""
     weights = _weights(data)
-    for k in LEFT_OUT_BLOCKS[len(weights):]:
+    for k in LEFT_OUT_BLOCKS[len(weights) :]:
         if len(np.asarray(left_out.get(k, ()))):
             raise ValueError(f"left-out {k} given but the observations hold no table target")
     masks = []
@@ -71,7 +71,7 @@ def _without(data: CalibrationData, masks) -> CalibrationData:
     return out
 
 
-def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw):
+def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw, hold=()):
     """The rejection pass: leave out what lies beyond `reject` robust σ, solve again.
 
     A few gross outliers pull a least-squares solution so far that good neighbours (the
@@ -80,7 +80,8 @@ def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw)
     separate steps' `start`: from the contaminated optimum LM crept along the weak
     depth valley without converging) until the masks stop changing, at most
     `MAX_REJECTION_PASSES` times. Same shapes (weights 0): the compiled solver is reused.
-    With `fn` None (no joint solve) the outliers are only counted.
+    With `fn` None (no joint solve) the outliers are only counted. `hold`: paths held
+    at run time and reported free (the profiled axis point, `least_squares`'s `release`).
 
     **Returns:** `(fit or None, masks applied, number of passes)`.
     """
@@ -92,7 +93,14 @@ def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw)
             if same:
                 break
             fit = least_squares(
-                fn, start, _without(data, masks), freeze=freeze, max_steps=max_steps, throw=throw
+                fn,
+                start,
+                _without(data, masks),
+                freeze=freeze,
+                hold=hold,
+                release=hold,
+                max_steps=max_steps,
+                throw=throw,
             )
             applied, passes = masks, passes + 1
             masks = _outliers(fit.params, data, reject)

@@ -27,6 +27,8 @@ class Calibration:
     - `sensor_size`: `(width, height)` in px.
     - `coverage`: the sensor region the calibration data covered (`Coverage`), None
       when unknown (no sensor size, or a file written before coverage was recorded).
+    - `axis_profile`: with `gauge="profile"`, where the profile of the cost placed the
+      axis point (`_gauge.AxisProfile`: value, σ, converged, at_bound); else None.
 
     A camera-only calibration (no stripe pixels on the boards) has `plane = None`
     (`camera_only` is True): it serves OpenCV export and camera studies, not
@@ -50,6 +52,8 @@ class Calibration:
     # (view, stripe point), (frame, gauge point) into the screened observations
     left_out: dict | None = None
     coverage: Coverage | None = None  # sensor region covered by calibration data
+    # `gauge="profile"`: where the profile placed the axis point (`_gauge.AxisProfile`)
+    axis_profile: object | None = None
 
     @property
     def camera_only(self) -> bool:

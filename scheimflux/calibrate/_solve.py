@@ -109,6 +109,59 @@ class NotConvergedError(RuntimeError):
 
 
 @dataclasses.dataclass(frozen=True)
+class Released:
+    """The cost's profile over parameters held in a solve (`least_squares`'s `release`)
+    at its solution: the cost `c(p) = min_q ½|r(p, q)|²` with the solved parameters `q`
+    re-optimised.
+
+    **Fields:**
+    - `labels`: the released parameters.
+    - `gradient`: `dc/dp = J_pᵀ (I − P_q) r` (physical units): the envelope theorem's
+      `J_pᵀ r`, with the projection `P_q` onto the solved parameters' columns removing,
+      to first order, what the solve left of its own optimum.
+    - `hessian`: the Gauss–Newton Hessian of the profile, `J_pᵀ (I − P_q) J_p` (the
+      Schur complement of `JᵀJ`), from a QR factorisation of the column-scaled `J_q`:
+      along the weakest directions of a calibration (relative eigenvalues ~1e-13 of the
+      scaled `JᵀJ`) the Schur complement formed from `JᵀJ` loses every digit.
+    """
+
+    labels: tuple[str, ...]
+    gradient: np.ndarray
+    hessian: np.ndarray
+
+
+def _dense_jacobian(structure, B: np.ndarray) -> np.ndarray:
+    """The Jacobian `J` (rows × state vector) from the compressed one and its structure."""
+    gc = np.asarray(structure.global_cols)
+    lc = np.asarray(structure.local_cols)
+    rows = np.asarray(structure.row_block)
+    J = np.zeros((B.shape[0], gc.size + lc.size), B.dtype)
+    J[:, gc] = B[:, : gc.size]
+    for v in range(structure.n_blocks):
+        m = rows == v
+        J[np.ix_(m, lc[v])] = B[m][:, gc.size :]
+    return J
+
+
+def _released(structure, B, r, free, reported, labels) -> Released | None:
+    """[`Released`][] for the parameters reported free but held in the solve (`labels`:
+    the state vector's names, or a callable giving them)."""
+    ip = np.flatnonzero(reported & ~free)
+    if ip.size == 0:
+        return None
+    labels = labels() if callable(labels) else labels
+    B = np.asarray(B)
+    J = _dense_jacobian(structure, B)
+    iq = np.flatnonzero(free)
+    col = np.linalg.norm(J, axis=0)
+    d = np.where(col > 0, 1.0 / np.where(col > 0, col, 1.0), 1.0)
+    Q, _ = np.linalg.qr(J[:, iq] * d[iq])
+    Jp = J[:, ip]
+    P = Jp - Q @ (Q.T @ Jp)
+    return Released(tuple(labels[i] for i in ip), P.T @ r, P.T @ P)
+
+
+@dataclasses.dataclass(frozen=True)
 class Fit:
     """The outcome of one least-squares solve.
 
@@ -126,6 +179,8 @@ class Fit:
       parameters (physical units), their names, the residuals of non-zero weight.
     - `result`, `stats`: optimistix's `Solution.result` and `Solution.stats` (None and
       empty for a fit read back from a file).
+    - `released`: for a solve with `release`, the profile of the cost over the
+      released parameters at the solution ([`Released`][]); else None.
     """
 
     params: eqx.Module
@@ -143,6 +198,7 @@ class Fit:
     n_observations: int = 0  # residuals with non-zero weight
     result: optx.RESULTS | None = None  # optimistix's result of the solve
     stats: dict = dataclasses.field(default_factory=dict)  # optimistix's `Solution.stats`
+    released: Released | None = None  # the profile over the released parameters
 
     @property
     def rms(self) -> float:
@@ -291,13 +347,13 @@ def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mas
 
 @exported_jit(compiler_options=ONE_SHOT)
 def _normal_at(x, args, structure: BlockStructure, z):
-    """Residual, block normal matrix, and `J z` twice to check the structure against:
+    """Residual, block normal matrix, `J z` twice to check the structure against:
     from the compressed Jacobian and the rows' blocks, and directly (forward mode only:
-    no reverse pass, which would double the program)."""
+    no reverse pass, which would double the program), and the compressed Jacobian `B`."""
     r, jvp = jax.linearize(lambda v: _unscaled(v, args), x)
     JT = jax.vmap(jvp, out_axes=1)(jnp.concatenate([z[None], structure.seeds(x.dtype)]))
     B = JT[:, 1:]
-    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0]
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 0], B
 
 
 @exported_jit(compiler_options=ONE_SHOT)
@@ -308,9 +364,9 @@ def _normal_detect(x, args, global_cols, local_cols, probes, z):
     ([`row_probes`][]), the check vector `z` and the compressed Jacobian (its seeds
     depend on the columns only), so a solve's start and end are one compiled program.
 
-    **Returns:** `(r, JᵀJ, J z from the structure, J z, row blocks, ok)`; `ok` False
-    when some row mixes blocks (then the normal matrix is not valid and the caller goes
-    dense).
+    **Returns:** `(r, JᵀJ, J z from the structure, J z, B, row blocks, ok)`; `ok`
+    False when some row mixes blocks (then the normal matrix is not valid and the caller
+    goes dense).
     """
     V = local_cols.shape[0]
     seeds = BlockStructure(global_cols, local_cols, jnp.zeros((1,), jnp.int32), V).seeds(x.dtype)
@@ -320,7 +376,7 @@ def _normal_detect(x, args, global_cols, local_cols, probes, z):
     rows, ok = rows_from_probes(JT[:, 0], JT[:, 1], V)
     structure = BlockStructure(global_cols, local_cols, rows, V)
     B = JT[:, 3:]
-    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 2], rows, ok
+    return r, structure.normal_matrix(B), structure.apply(B, z), JT[:, 2], B, rows, ok
 
 
 def _dense(n: int, n_rows: int) -> BlockStructure:
@@ -334,7 +390,7 @@ def _dense(n: int, n_rows: int) -> BlockStructure:
 
 
 def _normal_equations(x, args, layout, z):
-    """`(structure, r, JᵀJ, J z from the structure, J z)` at `x`: block structure where
+    """`(structure, r, JᵀJ, J z from the structure, J z, B)` at `x`: block structure where
     the rows split by block (`layout` = `(global_cols, local_cols)`, or a
     `BlockStructure` to reuse), dense normal equations otherwise."""
     if isinstance(layout, BlockStructure):
@@ -345,9 +401,9 @@ def _normal_equations(x, args, layout, z):
         gc = jax.device_put(np.asarray(global_cols, np.int32))
         lc = jax.device_put(np.asarray(local_cols, np.int32))
         probes = jax.device_put(np.asarray(row_probes(local_cols, n), x.dtype))
-        r, H, Bz, Jz, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
+        r, H, Bz, Jz, B, rows, ok = _normal_detect(x, args, gc, lc, probes, z)
         if bool(ok):
-            return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, Bz, Jz
+            return BlockStructure(gc, lc, rows, int(local_cols.shape[0])), r, H, Bz, Jz, B
     n_rows = eqx.filter_eval_shape(_unscaled, x, args).shape[0]
     structure = _dense(n, n_rows)
     return (structure, *_normal_at(x, args, structure, z))
@@ -376,6 +432,7 @@ def least_squares(
     freeze: Sequence[str] = (),
     spec=None,
     hold: Sequence[str] = (),
+    release: Sequence[str] = (),
     blocks: str | None = "board_poses",
     max_steps: int = 200,
     rtol: float = 1e-5,
@@ -394,6 +451,10 @@ def least_squares(
       vector with a column scale of zero, so a solve that holds them (e.g. the ideal
       camera before its distortion is freed) runs the same compiled program as the
       solve that frees them. The `Fit` reports them as frozen.
+    - `release`: paths of `hold` that the `Fit` reports as free (its `free_mask`,
+      `normal_matrix`, `labels`): held during the solve (their value placed by the
+      caller, e.g. at the minimum of a profile), free for the covariance, so that their
+      own uncertainty is not hidden. The rank check is on the solved parameters.
     - `blocks`: the sub-tree of per-view parameters (leading view axis) whose columns
       are local to their view's residuals; the normal equations are assembled block by
       block (`BlockNormalCholesky`). None: dense normal equations.
@@ -418,7 +479,7 @@ def least_squares(
     args0 = (fn, unravel, static, data)
     layout = block_layout(unravel, blocks)
     z = jax.device_put(np.random.default_rng(1).standard_normal(x0_h.shape).astype(x0_h.dtype))
-    structure, r0, H, Bz, Jz = _normal_equations(x0, args0, layout, z)
+    structure, r0, H, Bz, Jz, _ = _normal_equations(x0, args0, layout, z)
     r0, H, Bz, Jz = (np.asarray(a) for a in (r0, H, Bz, Jz))
     if not np.all(np.isfinite(H)):
         raise ValueError("the Jacobian is not finite at the initial parameters")
@@ -433,8 +494,11 @@ def least_squares(
     col = np.sqrt(np.diag(H))
     scale = np.where(col > 0, 1.0 / np.where(col > 0, col, 1.0), 1.0)
     free, spec_free = np.ones(x0_h.shape, bool), spec
+    reported, spec_reported, scale_reported = free, spec, scale
     if hold:
         free, spec_free = _held(params, spec, hold)
+        kept = tuple(h for h in hold if h not in tuple(release))
+        reported, spec_reported = _held(params, spec, kept) if kept else (reported, spec)
         scale = np.where(free, scale, 0.0)
     args = (fn, unravel, static, data, x0, jax.device_put(scale))
     solver = levenberg_marquardt(structure, rtol, atol, jax.device_put(free.astype(x0_h.dtype)))
@@ -450,9 +514,11 @@ def least_squares(
     end = _normal_equations(x_end, args0, layout if structure.n_blocks else structure, z)
     if end[0].n_blocks != structure.n_blocks:
         end = _normal_equations(x_end, args0, structure, z)
-    _, r, H_end, _, _ = end
+    end_structure, r, H_all, _, _, B_end = end
     r_h = np.asarray(r)
-    H_end = np.asarray(H_end)[np.ix_(free, free)]
+    H_all = np.asarray(H_all)
+    H_end = H_all[np.ix_(free, free)]
+    H_reported = H_all[np.ix_(reported, reported)]
     if check_rank:
         # judged at the solution: a degeneracy only at the start (a sensor tilt or the
         # rational terms at exactly zero, where their derivatives are those of the
@@ -473,13 +539,21 @@ def least_squares(
         initial_cost=float(0.5 * np.sum(r0**2)),
         cost=float(0.5 * np.sum(r_h**2)),
         time_s=elapsed,
-        free_mask=spec_free,
-        scale=jax.device_put(scale[np.flatnonzero(free)]),
-        normal_matrix=H_end,
-        labels=tuple(parameter_labels(params, spec_free)),
+        free_mask=spec_reported,
+        scale=jax.device_put(scale_reported[np.flatnonzero(reported)]),
+        normal_matrix=H_reported,
+        labels=tuple(parameter_labels(params, spec_reported)),
         n_observations=int(np.count_nonzero(r_h)),
         result=result,
         stats=stats,
+        released=_released(
+            end_structure,
+            B_end,
+            r_h,
+            free,
+            reported,
+            lambda: parameter_labels(params, spec),
+        ),
     )
     if throw and not ok:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {message}", fit)

@@ -85,6 +85,14 @@ def register(subparsers) -> None:
         "(default: %(default)s)",
     )
     p.add_argument(
+        "--gauge",
+        choices=("held", "profile"),
+        default="held",
+        help="thick lens with distortion: hold the nominal tilt (held) or free it and place "
+        "the axis point at the minimum of the cost profile (profile: no nominal-tilt bias "
+        "noise-free, ~2.4x the time; docs/noncentral.md) (default: %(default)s)",
+    )
+    p.add_argument(
         "--no-joint",
         dest="joint",
         action="store_false",
@@ -284,6 +292,7 @@ def run(args) -> int:
             init=args.init,
             joint=args.joint,
             freeze=args.freeze,
+            gauge=args.gauge,
             sigma_corner_px=args.sigma_corner_px,
             sigma_stripe_px=args.sigma_stripe_px,
             robust=args.robust or None,
