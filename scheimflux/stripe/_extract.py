@@ -48,12 +48,12 @@ MIN_LINE_FRACTION = 0.05
 ALBEDO_EVEN_MAX = 0.5
 # Scan lines on each side over which `_noise_along` pools the noise beside a line.
 _NOISE_POOL = 15
-# Scan lines on each side of a refused one on a long-ridge track whose centres are
-# dropped too: the print refuses the line where an albedo edge lies under its profile,
-# and the centres next to a refusal are the ones the edge has begun to pull (on a
-# ChArUco print with the line at 133 deg: up to 1.4 px off the exact line at an
-# asymmetry of 0.05, under its bound; none over 0.25 px with 2 dropped, 0.68 px with 0).
-_TRACK_TRIM = 2
+# Scan lines on each side of a refused one on a long-ridge track whose centres must
+# also agree with a straight line through the others: the print refuses the line where
+# an albedo edge lies under its profile, and the centres next to a refusal are the ones
+# the edge has begun to pull (on a ChArUco print with the line at 133 deg: up to 1.4 px
+# off the exact line at an asymmetry of 0.05, under its bound).
+_TRACK_TRIM = 3
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
 
@@ -314,6 +314,28 @@ def _noise_along(
         np.pad(ratio, p, mode="edge"), 2 * p + 1), axis=1)  # fmt: skip
     sigma = sigma * np.sqrt(np.maximum(ratio, 1.0))
     return np.maximum(sigma, 0.3) if integer else sigma
+
+
+def _local_line(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Prediction of `y` at each scan line from a straight line fitted to the scan
+    lines within +- `half` where `w` (bool) holds, and how many there are (prefix sums;
+    a scan line's own value is in the fit only where `w` holds there)."""
+    n = y.size
+    x = np.arange(n, dtype=np.float64)
+    wf = w.astype(np.float64)
+    yw = np.where(w, y, 0.0)
+    cols = np.stack([wf, wf * x, wf * x * x, yw, yw * x])
+    c = np.zeros((5, n + 1))
+    np.cumsum(cols, axis=1, out=c[:, 1:])
+    lo = np.clip(np.arange(n) - half, 0, n)
+    hi = np.clip(np.arange(n) + half + 1, 0, n)
+    s0, s1, s2, t0, t1 = c[:, hi] - c[:, lo]
+    det = s0 * s2 - s1 * s1
+    ok = (s0 >= 2) & (det > 1e-9 * np.maximum(s0, 1.0) ** 2)
+    safe = np.where(ok, det, 1.0)
+    slope = (s0 * t1 - s1 * t0) / safe
+    icpt = (s2 * t0 - s1 * t1) / safe
+    return np.where(ok, icpt + slope * x, np.nan), np.where(ok, s0, 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -595,9 +617,20 @@ def _extract_track(
     min_line = _min_line(width, min_segment, shape[1])
     sigma_s = max(width / (2.0 * math.sqrt(3.0)), 0.7)
     if track is not None:
+        # the centres beside a refused scan line of a long-ridge track (`_TRACK_TRIM`)
+        # are judged against a straight line through the others within +- 40 scan
+        # lines: farther than max(0.25 px, 3 x their robust spread), an edge pulls them
         refused = coarse.support & ~valid
         near = np.convolve(refused.astype(np.float64), np.ones(2 * _TRACK_TRIM + 1), "same")
-        valid &= near < 0.5
+        near = valid & (near > 0.5)
+        interior = valid & ~near
+        if interior.sum() >= 12:
+            pred, count = _local_line(np.where(valid, y_fit, 0.0), interior, 40)
+            r = np.abs(y_fit - pred)
+            judged = interior & (count >= 6) & np.isfinite(r)
+            if judged.any():
+                lim = max(0.25, 3.0 * 1.4826 * float(np.median(r[judged])))
+                valid &= ~(near & (count >= 6) & ~(r <= lim))
     segment, valid = link_segments(
         y,
         valid,
