@@ -48,6 +48,8 @@ MIN_LINE_FRACTION = 0.05
 ALBEDO_EVEN_MAX = 0.5
 # Scan lines on each side over which `_noise_along` pools the noise beside a line.
 _NOISE_POOL = 15
+# Lowest ratio of that noise to the frame's estimate.
+_LOCAL_NOISE_MIN = 0.25
 # Scan lines on each side of a refused one on a long-ridge track whose centres must
 # also agree with a straight line through the others: the print refuses the line where
 # an albedo edge lies under its profile, and the centres next to a refusal are the ones
@@ -454,8 +456,11 @@ def _extract_track(
         )
         if local_noise is not None:
             # a long-ridge track has shown the line: each centre is judged against the
-            # noise where it lies (`_noise_along`), never above the frame's estimate
-            thr = thr * np.clip(local_noise / noise, 0.0, 1.0)
+            # noise where it lies (`_noise_along`), never above the frame's estimate nor
+            # below a quarter of it (a print of albedo 0.04 has 1/5 of the white's shot
+            # noise, and the frame's median lies between; an area clipped to 0 beside
+            # the line, as in a colour difference, has none)
+            thr = thr * np.clip(local_noise / noise, _LOCAL_NOISE_MIN, 1.0)
         y = lines.y
         valid = lines.found & coarse.support & (lines.strength >= thr)
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
