@@ -9,6 +9,10 @@ normal equations are assembled block by block (26 products instead of 110 for 15
 and no dense QR of a 20 000 × 110 matrix per step). Everything that changes between
 solves of the same shape travels as array arguments, so a second calibration with the
 same number of views and points reuses the compiled solver.
+
+(One module, longer than most: `least_squares`, its start and end programs, the rank
+check, the released parameters' profile and `refine` all work on the same flattened,
+column-scaled state vector and its block structure.)
 """
 
 from __future__ import annotations

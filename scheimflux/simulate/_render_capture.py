@@ -23,6 +23,9 @@ laser is drawn only on the target and the truth is clipped to it.
 
 Colour images are BGR (as `cv2.imread` returns them). Pixel (0, 0) is the centre of
 the top-left pixel; u grows to the right, v downwards.
+
+(One module, longer than most: the capture model above from albedo to JPEG, one small
+function per stage, and the scoring that reads its exact line.)
 """
 
 from __future__ import annotations

@@ -1,4 +1,10 @@
-"""`extract_stripe` / `extract_stripes`: laser-stripe centres of one or many images."""
+"""`extract_stripe` / `extract_stripes`: laser-stripe centres of one or many images.
+
+(One module, longer than most: `_extract_track` is one pass from the coarse track to the
+linked centres, whose stages read and refine the same band, thresholds and per-scan-line
+masks; the stages that stand alone live in their own modules: `_steger`, `_link`,
+`_coarse`, `_clipped`, `_longridge`, `_stepfit`.)
+"""
 
 from __future__ import annotations
 
