@@ -29,6 +29,7 @@ from numbers import Integral, Real
 import numpy as np
 
 from ..geometry._stage import RotaryStage
+from ._gauges import gauge_scan
 from ._rig import Rig
 from ._scenes import (
     _coarse_pixels,
@@ -39,7 +40,6 @@ from ._scenes import (
     _rot_z,
     _trace_sets,
     _unit,
-    gauge_scan,
 )
 
 __all__ = ["ArtefactScan", "ring_artefact", "sphere_pair_artefact", "stepped_gauge_artefact"]
