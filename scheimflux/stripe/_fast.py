@@ -889,3 +889,24 @@ def consistent_passes(yv, valid, keep, off_curve, half, floor_px):
                 valid[i] and not (judged[i] and r[i] > thr) and not (off_curve[i] and not judged[i])
             )
     return keep
+
+
+@_jit
+def clipped_lines(flat, stride_y, stride_x, n_rows, found, row, centre, level):
+    """The test of `_extract`'s `clipped` (before its `valid &`): at least two of the
+    three pixels at the rounded row (`row` where `found`, else `centre`; then `centre`)
+    at or above `level`, per scan line; `flat` read at `y stride_y + x stride_x`."""
+    n = centre.size
+    out = np.zeros(n, np.bool_)
+    for j in range(n):
+        for pass_ in range(2):
+            at = row[j] if (pass_ == 0 and found[j]) else centre[j]
+            c = min(max(np.intp(np.rint(at)), 0), n_rows - 1)
+            count = 0
+            for d in range(-1, 2):
+                y = min(max(c + d, 0), n_rows - 1)
+                count += flat[y * stride_y + j * stride_x] >= level
+            if count >= 2:
+                out[j] = True
+    return out
+
