@@ -826,13 +826,50 @@ def column_argmax(a):
 
 
 @_jit
+def _select(a, k):
+    """The `k`-th smallest entry of `a` (reordered in place; no NaN): quickselect with
+    a median-of-three pivot, leaving `a[:k]` <= `a[k]`."""
+    lo, hi = 0, a.size - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@_jit
 def _median(x):
     """`_image._median` (the mean of the two middle values for an even count)."""
-    s = np.sort(x)
+    s = x.copy()
     m = s.size // 2
+    upper = _select(s, m)
     if s.size % 2:
-        return s[m]
-    return (s[m - 1] + s[m]) / 2
+        return upper
+    lower = s[0]
+    for i in range(1, m):
+        lower = max(lower, s[i])
+    return (lower + upper) / 2
 
 
 @_jit
@@ -910,3 +947,85 @@ def clipped_lines(flat, stride_y, stride_x, n_rows, found, row, centre, level):
                 out[j] = True
     return out
 
+
+
+@_jit
+def cubic_seed(y, valid):
+    """The robust global cubic of `_link.consistent`: which valid centres it keeps
+    (`off_curve`: the valid ones it refuses). The same steps; the normal equations are
+    summed here in order (BLAS may order the sums otherwise: the coefficients can differ
+    in the last bits, which moves a centre across a threshold only by that much)."""
+    n = y.size
+    m = 0
+    for i in range(n):
+        m += valid[i]
+    x = np.empty(m, np.intp)
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            x[k] = i
+            k += 1
+    mean = 0.0
+    for i in range(m):
+        mean += x[i]
+    mean = mean / m
+    span = max(float(x[m - 1] - x[0]), 1.0)
+    xs = np.empty(m)
+    yx = np.empty(m)
+    for i in range(m):
+        xs[i] = (x[i] - mean) / span
+        yx[i] = y[x[i]]
+    half_n = m // 2
+    slopes = np.empty(half_n)
+    for i in range(half_n):
+        slopes[i] = (yx[half_n + i] - yx[i]) / (xs[half_n + i] - xs[i])
+    slope = _median(slopes)
+    r0 = np.empty(m)
+    for i in range(m):
+        r0[i] = yx[i] - slope * xs[i]
+    mid = _median(r0)
+    for i in range(m):
+        r0[i] = abs(r0[i] - mid)
+    lim = max(20.0, 5.0 * 1.4826 * _median(r0))
+    seed = np.empty(m, np.bool_)
+    for i in range(m):
+        seed[i] = r0[i] <= lim
+    r = np.empty(m)
+    for _ in range(2):
+        a = np.zeros((4, 4))
+        b = np.zeros(4)
+        for i in range(m):
+            if seed[i]:
+                p = (1.0, xs[i], xs[i] * xs[i], xs[i] * xs[i] * xs[i])
+                for u in range(4):
+                    for v in range(4):
+                        a[u, v] += p[u] * p[v]
+                    b[u] += p[u] * yx[i]
+        for u in range(4):
+            a[u, u] += 1e-12
+        coef = np.linalg.solve(a, b)
+        n_seed = 0
+        for i in range(m):
+            x1 = xs[i]
+            r[i] = abs(yx[i] - (coef[0] + coef[1] * x1 + coef[2] * (x1 * x1)
+                                + coef[3] * (x1 * x1 * x1)))  # fmt: skip
+            n_seed += seed[i]
+        kept = np.empty(n_seed)
+        k = 0
+        for i in range(m):
+            if seed[i]:
+                kept[k] = r[i]
+                k += 1
+        lim = max(1.0, 4.0 * 1.4826 * _median(kept))
+        n_seed = 0
+        for i in range(m):
+            seed[i] = r[i] <= lim
+            n_seed += seed[i]
+        if n_seed < 12:
+            seed[:] = True
+            break
+    off_curve = np.zeros(n, np.bool_)
+    for i in range(m):
+        if not seed[i]:
+            off_curve[x[i]] = True
+    return off_curve
