@@ -578,6 +578,9 @@ def test_compiled_band_filters_equal_opencv():
             ccol2, S._FAST_TILE,
         )  # fmt: skip
         np.testing.assert_array_equal(ccol, ccol2)
+        layout = _fast.band_layout(centre, S._TILE, half, r, S._SEARCH + 1)
+        for a, b in zip(layout[:5], (top[tile], height, ccol, colsrc, coltop), strict=True):
+            np.testing.assert_array_equal(a, b)
         # the strip against the composite where it holds the composite's interior rows,
         # and the composite's every row (borders included) through `_smooth_at`
         main_top = top[tile]

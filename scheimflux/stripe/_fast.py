@@ -1029,3 +1029,46 @@ def cubic_seed(y, valid):
         if not seed[i]:
             off_curve[x[i]] = True
     return off_curve
+
+
+@_jit
+def band_layout(centre, tile, half, r, k_search):
+    """`_steger._layout` and the arrays `_steger._band_compiled` derives from it, for
+    the scan lines' rounded track `centre` (W,): `(main_top, height, ccol, colsrc,
+    coltop, rows)`: each scan line's first composite row, the composite's height,
+    each scan line's column, each column's scan line and first row, and the (K, W)
+    image rows of the windows."""
+    w = centre.size
+    n_tiles = (w + tile - 1) // tile
+    tile_w = tile + 2 * r
+    top = np.empty(n_tiles, np.intp)
+    start = np.empty(n_tiles, np.intp)
+    spread = 0
+    for t in range(n_tiles):
+        lo = hi = centre[min(t * tile, w - 1)]
+        for j in range(t * tile, t * tile + tile):
+            c = centre[min(j, w - 1)]  # (past the end: the last scan line's)
+            lo, hi = min(lo, c), max(hi, c)
+        top[t] = lo - half
+        spread = max(spread, hi - lo)
+        start[t] = min(max(t * tile - r, 0), max(w, tile_w) - tile_w)
+    height = spread + 2 * half + 1
+    main_top = np.empty(w, np.intp)
+    ccol = np.empty(w, np.intp)
+    for j in range(w):
+        t = j // tile
+        main_top[j] = top[t]
+        ccol[j] = t * tile_w + j - start[t]
+    n_comp = n_tiles * tile_w
+    colsrc = np.empty(n_comp, np.intp)
+    coltop = np.empty(n_comp, np.intp)
+    for cc in range(n_comp):
+        t = cc // tile_w
+        colsrc[cc] = min(start[t] + cc % tile_w, w - 1)
+        coltop[cc] = top[t]
+    kk = 2 * k_search + 1
+    rows = np.empty((kk, w), np.intp)
+    for o in range(kk):
+        for j in range(w):
+            rows[o, j] = centre[j] - k_search + o
+    return main_top, height, ccol, colsrc, coltop, rows

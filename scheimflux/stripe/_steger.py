@@ -358,25 +358,34 @@ def _gather_window(images: list[np.ndarray], row0: np.ndarray, ccol: np.ndarray,
 _FAST_TILE = 32
 
 
+_FLAT: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _kernels_flat(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`gaussian_kernels(sigma)` as contiguous 1-D arrays (cached)."""
+    out = _FLAT.get(sigma)
+    if out is None:
+        out = tuple(np.ascontiguousarray(k.ravel()) for k in gaussian_kernels(sigma))
+        if len(_FLAT) < 256:
+            _FLAT[sigma] = out
+    return out
+
+
 def _band_compiled(scan, centre, sigma, r, bg_off, margin, s_total) -> ScanLines | None:
     """`steger_band`'s result from the compiled loops (`_fast.band_window` and
     `_fast.band_lines`), None where they defer to the reference. They filter only the
     pixels that are read, tile by tile, with OpenCV's arithmetic and the reference
     composite's layout (`_layout`), so the values are the reference's."""
-    h, w = scan.shape
     k_search = _SEARCH + 1
-    top, height, start, tile_w, tile, ccol = _layout(w, centre, margin + r, r)
-    n_comp = start.size * tile_w
-    cc = np.arange(n_comp)
-    colsrc = np.minimum(start[cc // tile_w] + cc % tile_w, w - 1)
-    coltop = top[cc // tile_w]
-    k0, k1, k2 = (k.ravel() for k in gaussian_kernels(sigma))
+    main_top, height, ccol, colsrc, coltop, rows = _fast.band_layout(
+        centre, _TILE, margin + r, r, k_search
+    )
+    k0, k1, k2 = _kernels_flat(sigma)
     win, strip, strip_top = _fast.band_window(
         scan, centre, k0, k1, k2, k_search, _SEARCH + 2 + bg_off, colsrc, coltop, ccol, _FAST_TILE,
     )  # fmt: skip
-    rows = centre[None, :] + np.arange(-k_search, k_search + 1)[:, None]
     y, strength, width, found, row, asym, ny, ok = _fast.band_lines(
-        *win, rows, strip, strip_top, top[tile], height, scan, colsrc, coltop, ccol, k0, 1,
+        *win, rows, strip, strip_top, main_top, height, scan, colsrc, coltop, ccol, k0, 1,
         2 * k_search, bg_off, sigma, s_total, bg_off, _INSIDE, FWHM_PER_SIGMA,
         _NORMAL_WINDOW,
     )  # fmt: skip
