@@ -602,3 +602,28 @@ def test_compiled_band_filters_equal_opencv():
         if exact:
             np.testing.assert_array_equal(got, want)
         np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+@needs_numba
+def test_compiled_coarse_track(monkeypatch):
+    # `_fast.coarse_scan` (ridge, first maximum, parabola peak in one pass) gives the
+    # reference's coarse track exactly, ties in the ridge response included
+    from scheimflux.stripe import _coarse
+
+    rng = np.random.default_rng(4)
+    smalls = [rng.integers(0, 5, (60, 90)).astype(np.float32) for _ in range(4)]
+    smalls += [(rng.random((75, 100)) * 50).astype(np.float32) for _ in range(3)]
+    img, _ = render_stripe((300, 400), CENTRES["curved"], width_px=5, peak=0.4, seed=1)
+    smalls.append(_coarse.downsample(img))
+    n_found = 0
+    for small in smalls:
+        for width in (3.0, 5.0, 12.0):
+            fast, ref = _both_paths(monkeypatch, lambda: _coarse.coarse_track(
+                small, 4 * small.shape[0], 4 * small.shape[1], width_px=width,
+                integer_input=True, pixel_noise=0.5,
+            ))  # fmt: skip
+            assert (fast.found, fast.tolerance) == (ref.found, ref.tolerance)
+            np.testing.assert_array_equal(fast.centre, ref.centre)
+            np.testing.assert_array_equal(fast.support, ref.support)
+            n_found += ref.found
+    assert n_found >= 12  # tracks were found, not only empty results compared

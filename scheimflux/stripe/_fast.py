@@ -1072,3 +1072,28 @@ def band_layout(centre, tile, half, r, k_search):
         for j in range(w):
             rows[o, j] = centre[j] - k_search + o
     return main_top, height, ccol, colsrc, coltop, rows
+
+
+@_jit
+def coarse_scan(small, d):
+    """`_coarse.coarse_track`'s first steps on a float32 `small` (no mask) in one pass:
+    the ridge response (`ridge_rows`), the first maximum per scan line (`idx`), its
+    response and the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
+    it)."""
+    ridge = ridge_rows(small, d)
+    hs, ws = small.shape
+    idx = column_argmax(ridge)
+    resp = np.empty(ws, np.float32)
+    pos = np.empty(ws)
+    half, two = _F32(0.5), _F32(2.0)
+    for j in range(ws):
+        k = idx[j]
+        c = ridge[k, j]
+        up = ridge[max(k - 1, 0), j]
+        down = ridge[min(k + 1, hs - 1), j]
+        denom = up - two * c + down
+        frac = half * (up - down) / denom if denom < 0 else _F32(0.0)
+        frac = min(max(frac, _F32(-0.5)), _F32(0.5))
+        resp[j] = c
+        pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
+    return ridge, idx, resp, pos
