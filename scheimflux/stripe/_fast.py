@@ -252,6 +252,49 @@ def _row_pass(buf, boff, k, out, ooff, count):
 
 
 @_jit
+def _row_pass3(buf, boff, k0, k1, k2, out0, out1, out2, ooff, count):
+    """`_row_pass` with three kernels of one size at once (each input read once)."""
+    src = buf[boff:]
+    d0 = out0[ooff : ooff + count]
+    d1 = out1[ooff : ooff + count]
+    d2 = out2[ooff : ooff + count]
+    a0, a1, a2 = k0[0], k1[0], k2[0]
+    for m in range(count):
+        x = src[m]
+        d0[m] = x * a0
+        d1[m] = x * a1
+        d2[m] = x * a2
+    for t in range(1, k0.size):
+        a0, a1, a2 = k0[t], k1[t], k2[t]
+        for m in range(count):
+            x = src[m + t]
+            d0[m] = _fma(x, a0, d0[m])
+            d1[m] = _fma(x, a1, d1[m])
+            d2[m] = _fma(x, a2, d2[m])
+
+
+@_jit
+def _col_pass2(src, first, stride, k_sym, k_anti, out_sym, out_anti, count):
+    """`_col_pass` with a symmetric and an antisymmetric kernel of one size at once."""
+    r = k_sym.size // 2
+    ds = out_sym[:count]
+    da = out_anti[:count]
+    kc = k_sym[r]
+    mid = src[first : first + count]
+    for m in range(count):
+        ds[m] = mid[m] * kc
+        da[m] = _F32(0.0)
+    for t in range(1, r + 1):
+        ks, ka = k_sym[r + t], k_anti[r + t]
+        up = src[first + t * stride : first + t * stride + count]
+        down = src[first - t * stride : first - t * stride + count]
+        for m in range(count):
+            u, v = up[m], down[m]
+            ds[m] = _fma(u + v, ks, ds[m])
+            da[m] = _fma(u - v, ka, da[m])
+
+
+@_jit
 def _row_fused(buf, k, i):
     """One output of `_row_pass`."""
     s = buf[i] * k[0]
@@ -415,9 +458,10 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
                     cc = min(max(c_first + b, 0), n_comp - 1)
                     rho = min(max(coltop[cc] + row0 + q, 0), h - 1)
                     buf[q * nb + b] = np.float32(scan[rho, colsrc[cc]])
-        _row_pass(buf, 0, k0, h0, 0, m0 * nb)
-        _row_pass(buf, (sr - kr) * nb, k1, h1, 0, m1 * nb)
-        _row_pass(buf, (sr - kr) * nb, k2, h2, 0, m1 * nb)
+        q_in = sr - kr  # h0's row of h1's first
+        _row_pass(buf, 0, k0, h0, 0, q_in * nb)
+        _row_pass3(buf, q_in * nb, k0, k1, k2, h0[q_in * nb :], h1, h2, 0, m1 * nb)
+        _row_pass(buf, (q_in + m1) * nb, k0, h0, (q_in + m1) * nb, (m0 - q_in - m1) * nb)
         for i in range(n):
             if _plain(ccol[j0 + i], n_comp, ROW_LANES):
                 for q in range(m0):
@@ -430,11 +474,9 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
         n_d = hi - lo + kk
         n_s = hi - lo + 2 * s_rows + 1
         f0, f1 = r * nb, (sr - k_search) * nb
-        _col_pass(h1, f0, nb, k0, False, dv[0], n_d * nb)  # r_x
-        _col_pass(h0, f1, nb, k1, True, dv[1], n_d * nb)  # r_y
+        _col_pass2(h1, f0, nb, k0, k1, dv[0], dv[3], n_d * nb)  # r_x, r_xy
+        _col_pass2(h0, f1, nb, k2, k1, dv[4], dv[1], n_d * nb)  # r_yy, r_y
         _col_pass(h2, f0, nb, k0, False, dv[2], n_d * nb)  # r_xx
-        _col_pass(h1, f0, nb, k1, True, dv[3], n_d * nb)  # r_xy
-        _col_pass(h0, f1, nb, k2, False, dv[4], n_d * nb)  # r_yy
         fs = (sr - s_rows) * nb
         _col_pass(h0, fs, nb, k0, False, sm, n_s * nb)
         for i in range(n):
