@@ -501,3 +501,129 @@ def test_compiled_consistent(monkeypatch):
         valid = rng.random(n) < rng.uniform(0.4, 1.0)
         fast, ref = _both_paths(monkeypatch, lambda: _link.consistent(y, valid))
         np.testing.assert_array_equal(fast, ref)
+
+
+def _reference_windows(scan, track, width_px):
+    """`steger_band`'s window arrays from its reference: the tile composite filtered by
+    `cv2.sepFilter2D`, gathered per scan line (also the smoothed composite)."""
+    import cv2
+
+    from scheimflux.stripe import _steger as S
+    from scheimflux.stripe._kernels import gaussian_kernels
+
+    sigma, r, bg_off, _ = S._geometry(width_px, None)
+    margin = bg_off + S._SEARCH + 1
+    centre = np.rint(track).astype(np.intp)
+    comp, top_c, ccol = S._tiles(scan, centre, margin + r, r)
+    k_search = S._SEARCH + 1
+    crop = margin - k_search
+    k0, k1, k2 = gaussian_kernels(sigma)
+    one, rep = np.ones((1, 1), np.float32), cv2.BORDER_REPLICATE
+    rows = lambda a, k: cv2.sepFilter2D(a, cv2.CV_32F, k, one, borderType=rep)  # noqa: E731
+    cols = lambda a, k: cv2.sepFilter2D(a, cv2.CV_32F, one, k, borderType=rep)  # noqa: E731
+    h0 = rows(comp, k0)
+    smooth = cols(h0, k0)
+    inner = comp[crop : comp.shape[0] - crop]
+    reach = k_search + r
+    g0, g1, g2 = (
+        np.take(a, ((centre - top_c - crop - reach)[None, :] + np.arange(2 * reach + 1)[:, None])
+                * a.shape[1] + ccol)
+        for a in (h0[crop : comp.shape[0] - crop], rows(inner, k1), rows(inner, k2))
+    )  # fmt: skip
+    keep = slice(r, r + 2 * k_search + 1)
+    d = [cols(g1, k0), cols(g0, k1), cols(g2, k0), cols(g1, k1), cols(g0, k2)]
+    win_rows = (centre - top_c - k_search)[None, :] + np.arange(2 * k_search + 1)[:, None]
+    r_win = np.take(smooth, win_rows * smooth.shape[1] + ccol)
+    return [r_win] + [a[keep] for a in d], smooth, ccol
+
+
+@needs_numba
+def test_compiled_band_filters_equal_opencv():
+    # `_fast.band_window` repeats OpenCV's float32 separable filters (fused multiply-adds,
+    # the remainder columns without) on the pixels that are read; on x86 with AVX2 (the
+    # OpenCV wheels' dispatch) the window arrays and the smoothed strip are the
+    # reference's to the last bit, elsewhere within float32 rounding. Shapes include a
+    # width that is no multiple of the composite's tiles (a tile reads its neighbour's
+    # columns) and kernels of 7 to 27 taps.
+    import platform
+
+    import cv2
+
+    from scheimflux.stripe import _steger as S
+    from scheimflux.stripe._kernels import gaussian_kernels
+
+    # (11: OpenCV's CV_CPU_AVX2, which its Python module does not name)
+    exact = platform.machine() in ("x86_64", "AMD64") and cv2.checkHardwareSupport(11)
+    rng = np.random.default_rng(1)
+    for (h, w), width, kind in (
+        ((300, 410), 5.0, "u8"), ((300, 410), 2.0, "f32"), ((410, 300), 8.0, "u8T"),
+        ((120, 203), 12.0, "u8"), ((90, 1603), 5.0, "f32"),
+    ):  # fmt: skip
+        img = (rng.random((h, w)) * 255).astype(np.uint8)
+        scan = {"u8": img, "u8T": img.T, "f32": img.astype(np.float32) / 7}[kind]
+        sh, sw = scan.shape
+        x = np.arange(sw)
+        track = np.clip(sh / 2 + 0.15 * x + 20 * np.sin(x / 30.0) + rng.normal(size=sw), 0, sh - 1)
+        ref, smooth, ccol = _reference_windows(scan, track, width)
+        sigma, r, bg_off, _ = S._geometry(width, None)
+        centre = np.rint(track).astype(np.intp)
+        half = bg_off + S._SEARCH + 1 + r
+        top, height, start, tile_w, tile, ccol2 = S._layout(sw, centre, half, r)
+        cc = np.arange(start.size * tile_w)
+        colsrc = np.minimum(start[cc // tile_w] + cc % tile_w, sw - 1)
+        coltop = top[cc // tile_w]
+        k0, k1, k2 = (k.ravel() for k in gaussian_kernels(sigma))
+        win, strip, strip_top = _fast.band_window(
+            scan, centre, k0, k1, k2, S._SEARCH + 1, S._SEARCH + 2 + bg_off, colsrc, coltop,
+            ccol2, S._FAST_TILE,
+        )  # fmt: skip
+        np.testing.assert_array_equal(ccol, ccol2)
+        layout = _fast.band_layout(centre, S._TILE, half, r, S._SEARCH + 1)
+        for a, b in zip(layout[:5], (top[tile], height, ccol, colsrc, coltop), strict=True):
+            np.testing.assert_array_equal(a, b)
+        # the strip against the composite where it holds the composite's interior rows,
+        # and the composite's every row (borders included) through `_smooth_at`
+        main_top = top[tile]
+        got, want = [], []
+        for j in range(0, sw, 5):
+            for p in range(strip.shape[0]):
+                q = strip_top[j] + p - main_top[j]
+                if np.isfinite(strip[p, j]) and r <= q < height - r:
+                    got.append(strip[p, j])
+                    want.append(smooth[q, ccol[j]])
+            for q in (0, 1, r, height // 2, height - 1):
+                got.append(_fast._smooth_at(q, j, strip, strip_top, main_top, height, scan,
+                                             colsrc, coltop, ccol2, k0))  # fmt: skip
+                want.append(smooth[q, ccol[j]])
+        for a, b in zip(win, ref, strict=True):
+            if exact:
+                np.testing.assert_array_equal(a, b)
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4 * float(np.abs(b).max()))
+        if exact:
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+@needs_numba
+def test_compiled_coarse_track(monkeypatch):
+    # `_fast.coarse_scan` (ridge, first maximum, parabola peak in one pass) gives the
+    # reference's coarse track exactly, ties in the ridge response included
+    from scheimflux.stripe import _coarse
+
+    rng = np.random.default_rng(4)
+    smalls = [rng.integers(0, 5, (60, 90)).astype(np.float32) for _ in range(4)]
+    smalls += [(rng.random((75, 100)) * 50).astype(np.float32) for _ in range(3)]
+    img, _ = render_stripe((300, 400), CENTRES["curved"], width_px=5, peak=0.4, seed=1)
+    smalls.append(_coarse.downsample(img))
+    n_found = 0
+    for small in smalls:
+        for width in (3.0, 5.0, 12.0):
+            fast, ref = _both_paths(monkeypatch, lambda: _coarse.coarse_track(
+                small, 4 * small.shape[0], 4 * small.shape[1], width_px=width,
+                integer_input=True, pixel_noise=0.5,
+            ))  # fmt: skip
+            assert (fast.found, fast.tolerance) == (ref.found, ref.tolerance)
+            np.testing.assert_array_equal(fast.centre, ref.centre)
+            np.testing.assert_array_equal(fast.support, ref.support)
+            n_found += ref.found
+    assert n_found >= 12  # tracks were found, not only empty results compared

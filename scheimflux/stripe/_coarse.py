@@ -113,6 +113,12 @@ def coarse_track(
     d = ridge_offset(width_px)
     # Two-sided ridge response (a step edge gives none), zero outside the mask.
     fast = _fast.enabled and small.dtype == np.float32 and hs > 2 * d
+    if fast and mask_small is None and FACTOR == 4:
+        # the steps below to the peak position in one compiled pass (same values)
+        ridge, idx, resp, pos = _fast.coarse_scan(small, d)
+        lo_, hi_, _, _ = cv2.minMaxLoc(small)
+        return _track(ridge, idx, resp, pos, lo_, hi_, n_rows, n_cols, width_px, integer_input,
+                      pixel_noise)  # fmt: skip
     ridge = _fast.ridge_rows(small, d) if fast else ridge_response(small, d, 0)
     if mask_small is not None:
         ridge = np.where(mask_small, ridge, 0.0).astype(np.float32)
@@ -121,25 +127,32 @@ def coarse_track(
     idx = _fast.column_argmax(ridge) if fast else np.argmax(ridge, axis=0)
     cols = np.arange(ws)
     resp = ridge[idx, cols]
-
-    # Noise of one difference of 4 x 4 block means: sqrt(2) / 4 = 0.354 times the pixel
-    # noise, plus the rounding of integer block means (the minimum of two such
-    # differences has about the same spread).
-    ridge_noise = math.hypot(0.354 * pixel_noise, 0.35 if integer_input else 0.0)
-    lo_, hi_, _, _ = cv2.minMaxLoc(small)  # np.ptp in one pass (float32 difference)
-    threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.float32(hi_) - np.float32(lo_)), 1e-30))
-    ok = resp > threshold
-
-    tolerance = max(3.0 * width_px, 12.0)
-    if not ok.any():
-        return CoarseTrack(np.zeros(n_cols), np.zeros(n_cols, bool), tolerance, False)
-
     # Sub-coarse-pixel peak (parabola through the ridge response).
     up = ridge[np.maximum(idx - 1, 0), cols]
     down = ridge[np.minimum(idx + 1, hs - 1), cols]
     denom = up - 2.0 * resp + down
     frac = np.where(denom < 0, 0.5 * (up - down) / np.where(denom < 0, denom, -1.0), 0.0)
     pos = FACTOR * (idx + np.clip(frac, -0.5, 0.5)) + (FACTOR - 1) / 2.0
+    lo_, hi_, _, _ = cv2.minMaxLoc(small)  # np.ptp in one pass (float32 difference)
+    return _track(ridge, idx, resp, pos, lo_, hi_, n_rows, n_cols, width_px, integer_input,
+                  pixel_noise)  # fmt: skip
+
+
+def _track(ridge, idx, resp, pos, lo_, hi_, n_rows, n_cols, width_px, integer_input, pixel_noise):
+    """`coarse_track` from the ridge response, its first maximum per scan line, the
+    response there, the sub-coarse-pixel peak and the range of the coarse image."""
+    hs, ws = ridge.shape
+    cols = np.arange(ws)
+    # Noise of one difference of 4 x 4 block means: sqrt(2) / 4 = 0.354 times the pixel
+    # noise, plus the rounding of integer block means (the minimum of two such
+    # differences has about the same spread).
+    ridge_noise = math.hypot(0.354 * pixel_noise, 0.35 if integer_input else 0.0)
+    threshold = max(6.0 * ridge_noise, 1e-6 * max(float(np.float32(hi_) - np.float32(lo_)), 1e-30))
+    ok = resp > threshold
+
+    tolerance = max(3.0 * width_px, 12.0)
+    if not ok.any():
+        return CoarseTrack(np.zeros(n_cols), np.zeros(n_cols, bool), tolerance, False)
 
     # Consistency with the neighbours: re-search outliers near the median track.
     track = _windowed_median(pos, ok, _TRACK_WINDOW)

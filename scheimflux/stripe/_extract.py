@@ -18,11 +18,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from . import _fast
 from ._centroid import centroid_band
 from ._channel import ranked_channels
 from ._clipped import RIM_FLOOR, plain_surroundings, profile_std, rims_even
 from ._coarse import FACTOR, coarse_track, downsample
-from ._image import CHANNELS, as_image, block_noise, channel_image, estimate_noise
+from ._image import CHANNELS, _median, as_image, block_noise, channel_image, estimate_noise
 from ._link import consistent, link_segments
 from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
@@ -472,7 +473,7 @@ def _extract_track(
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
         valid &= (y >= -0.5) & (y <= shape[0] - 0.5)
         if lines.asym is not None:
-            valid &= np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
+            valid &= np.abs(lines.asym) <= asym_max  # (NaN: refused)
         return lines, valid, thr
 
     def clipped(lines: ScanLines, valid: np.ndarray) -> np.ndarray:
@@ -480,6 +481,11 @@ def _extract_track(
         peak (the chosen line point's row; the coarse track's where none was found)."""
         if sat_level is None or not valid.any():
             return np.zeros(shape[1], bool)
+        if _fast.enabled:
+            return valid & _fast.clipped_lines(
+                flat_sat, stride_y, stride_x, shape[0], lines.found, lines.row, coarse.centre,
+                float(sat_level),
+            )  # fmt: skip
         out = np.zeros(shape[1], bool)
         for at in (np.where(lines.found, lines.row, coarse.centre), coarse.centre):
             row = np.clip(np.rint(at).astype(np.intp), 0, shape[0] - 1)
@@ -581,9 +587,9 @@ def _extract_track(
     # (a width of 0 is no measurement: where a profile gives none, e.g. a line over the
     # print of a ChArUco board found by its long-ridge track, the median must not be 0)
     widths = lines.width[valid & ~saturated & np.isfinite(lines.width) & (lines.width > 0)]
-    med = float(np.median(widths)) if widths.size >= 8 else math.nan
+    med = _median(widths) if widths.size >= 8 else math.nan
     if widths.size >= 8 and method == "steger":
-        wv = np.nan_to_num(lines.width, nan=0.0)
+        wv = lines.width  # (NaN: refused)
         valid &= saturated | ((wv >= WIDTH_RATIO[0] * med) & (wv <= WIDTH_RATIO[1] * med))
 
     y_fit, refit_sigma = lines.y, np.full(shape[1], np.inf)
@@ -662,7 +668,8 @@ def _extract_track(
     y = np.where(valid, y_fit, np.nan)
     x = np.where(valid, x, np.nan)
     uv = np.stack([x, y], axis=1) if orientation == "vertical-scan" else np.stack([y, x], axis=1)
-    asym = np.zeros(shape[1]) if lines.asym is None else np.nan_to_num(lines.asym, nan=1.0)
+    asym = lines.asym
+    asym = np.zeros(shape[1]) if asym is None else np.where(np.isnan(asym), 1.0, asym)
     confidence = np.clip(lines.strength / (4.0 * thr), 0.0, 1.0) * np.clip(
         1.0 - np.abs(asym) / ASYMMETRY_MAX, 0.0, 1.0
     )

@@ -31,6 +31,8 @@ try:
     if os.environ.get("SCHEIMFLUX_NUMBA", "1") == "0":
         raise ImportError("disabled by SCHEIMFLUX_NUMBA=0")
     import numba
+    from numba import types as _nb_types
+    from numba.extending import intrinsic as _intrinsic
 
     AVAILABLE = True
 except ImportError:  # pragma: no cover - depends on the installation
@@ -50,6 +52,31 @@ def _jit(fn):
 
 
 _F32 = np.float32
+
+
+def _jit_inline(fn):
+    """`_jit`, inlined into its callers in Numba's IR (no call, no reference counts)."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(cache=True, nogil=True, inline="always")(inspect.unwrap(fn))
+
+if numba is not None:
+
+    @_intrinsic
+    def _fma(typingctx, a, b, c):
+        """Fused multiply-add of three float32 values (one rounding): `a b + c`."""
+        f32 = _nb_types.float32
+        sig = f32(f32, f32, f32)
+
+        def codegen(context, builder, signature, args):
+            return builder.fma(*args)
+
+        return sig, codegen
+
+else:  # pragma: no cover - the NumPy reference runs instead
+
+    def _fma(a, b, c):
+        return np.float32(np.float64(a) * np.float64(b) + np.float64(c))
 
 
 @_jit
@@ -189,35 +216,322 @@ def _hermite(p0, p1, m0, m1):
     return x
 
 
+# --- the band's derivatives: OpenCV's separable filters repeated -------------------------
+# `_steger.steger_band`'s reference filters a composite of tiles with `cv2.sepFilter2D`
+# (float32). The loops below compute the same values only where they are read, with
+# OpenCV's arithmetic on x86 (checked to the last bit by `tests/test_stripe.py`): the
+# row pass `k[0] x[0]` then one fused multiply-add per tap in order; the column pass
+# on symmetric (antisymmetric) kernels `k[r] x[0]` (0) then one fused multiply-add of
+# `x[+t] + x[-t]` (`x[+t] - x[-t]`) per tap, except in the last `width % 8` columns of
+# the filtered array, where OpenCV's remainder loop rounds the product and the sum
+# apart. The composite's layout (which scan line sits in which column, its first row
+# per scan line and its height) is the reference's, so that even its borders read the
+# same data.
+
+#: Columns OpenCV's float32 row (column) filter processes at a time with fused
+#: multiply-adds; the remainder of the array's width is computed without (x86, AVX2).
+ROW_LANES = 4
+COL_LANES = 8
+
+
 @_jit
-def _interp(flat, pos, top, ccol, h_s, n_cols):
-    """The smoothed composite at scan coordinate `pos` (linear), rows clipped."""
-    lo = np.floor(pos)
-    f = pos - lo
-    li = np.intp(lo)
-    c0 = min(max(li - top, 0), h_s - 1)
-    c1 = min(max(li + 1 - top, 0), h_s - 1)
-    return (1 - f) * flat[c0 * n_cols + ccol] + f * flat[c1 * n_cols + ccol]
+def _row_pass(buf, boff, k, out, ooff, count):
+    """`out[ooff + m] = sum_t k[t] buf[boff + m + t]` for m < count (flat float32 arrays),
+    as OpenCV's float32 row filter. (Views, so that every index is a sum of loop
+    counters: Numba's check for negative indices would keep the loops from being
+    vectorised.)"""
+    src = buf[boff:]
+    dst = out[ooff : ooff + count]
+    k_first = k[0]
+    for m in range(count):
+        dst[m] = src[m] * k_first
+    for t in range(1, k.size):
+        kt = k[t]
+        for m in range(count):
+            dst[m] = _fma(src[m + t], kt, dst[m])
+
+
+@_jit
+def _row_pass3(buf, boff, k0, k1, k2, out0, out1, out2, ooff, count):
+    """`_row_pass` with three kernels of one size at once (each input read once)."""
+    src = buf[boff:]
+    d0 = out0[ooff : ooff + count]
+    d1 = out1[ooff : ooff + count]
+    d2 = out2[ooff : ooff + count]
+    a0, a1, a2 = k0[0], k1[0], k2[0]
+    for m in range(count):
+        x = src[m]
+        d0[m] = x * a0
+        d1[m] = x * a1
+        d2[m] = x * a2
+    for t in range(1, k0.size):
+        a0, a1, a2 = k0[t], k1[t], k2[t]
+        for m in range(count):
+            x = src[m + t]
+            d0[m] = _fma(x, a0, d0[m])
+            d1[m] = _fma(x, a1, d1[m])
+            d2[m] = _fma(x, a2, d2[m])
+
+
+@_jit
+def _col_pass2(src, first, stride, k_sym, k_anti, out_sym, out_anti, count):
+    """`_col_pass` with a symmetric and an antisymmetric kernel of one size at once."""
+    r = k_sym.size // 2
+    ds = out_sym[:count]
+    da = out_anti[:count]
+    kc = k_sym[r]
+    mid = src[first : first + count]
+    for m in range(count):
+        ds[m] = mid[m] * kc
+        da[m] = _F32(0.0)
+    for t in range(1, r + 1):
+        ks, ka = k_sym[r + t], k_anti[r + t]
+        up = src[first + t * stride : first + t * stride + count]
+        down = src[first - t * stride : first - t * stride + count]
+        for m in range(count):
+            u, v = up[m], down[m]
+            ds[m] = _fma(u + v, ks, ds[m])
+            da[m] = _fma(u - v, ka, da[m])
+
+
+@_jit
+def _row_fused(buf, k, i):
+    """One output of `_row_pass`."""
+    s = buf[i] * k[0]
+    for t in range(1, k.size):
+        s = _fma(buf[i + t], k[t], s)
+    return s
+
+
+@_jit
+def _row_value(buf, k, i):
+    """One output of `_row_pass` as OpenCV's remainder columns compute it: product and
+    sum rounded apart, except in the taps past the last multiple of 4 (its compiled
+    loop, unrolled by 4, fuses them in its own remainder)."""
+    s = buf[i] * k[0]
+    fused_from = 4 * ((k.size - 1) // 4) + 1
+    for t in range(1, k.size):
+        if t >= fused_from:
+            s = _fma(buf[i + t], k[t], s)
+        else:
+            s = s + buf[i + t] * k[t]
+    return s
+
+
+@_jit
+def _col_pass(src, first, stride, k, anti, out, count):
+    """`out[m] = sum_t k[t] src[first + m + (t - r) stride]` for m < count (flat float32
+    arrays of rows of `stride`), as OpenCV's float32 (anti)symmetric column filter."""
+    r = k.size // 2
+    dst = out[:count]
+    if anti:
+        for m in range(count):
+            dst[m] = _F32(0.0)
+    else:
+        kc = k[r]
+        mid = src[first : first + count]
+        for m in range(count):
+            dst[m] = mid[m] * kc
+    for t in range(1, r + 1):
+        kt = k[r + t]
+        up = src[first + t * stride : first + t * stride + count]
+        down = src[first - t * stride : first - t * stride + count]
+        if anti:
+            for m in range(count):
+                dst[m] = _fma(up[m] - down[m], kt, dst[m])
+        else:
+            for m in range(count):
+                dst[m] = _fma(up[m] + down[m], kt, dst[m])
+
+
+@_jit
+def _col_value(src, c, stride, k, anti, fused):
+    """One output of `_col_pass` at flat index `c`; `fused=False`: the product and the
+    sum rounded apart (OpenCV's remainder columns)."""
+    r = k.size // 2
+    s = _F32(0.0) if anti else src[c] * k[r]
+    for t in range(1, r + 1):
+        up, down = src[c + t * stride], src[c - t * stride]
+        x = up - down if anti else up + down
+        s = _fma(x, k[r + t], s) if fused else s + x * k[r + t]
+    return s
+
+
+@_jit_inline
+def _plain(ccol, n_comp, lanes):
+    """Whether composite column `ccol` is in OpenCV's remainder of `n_comp` columns
+    processed `lanes` at a time."""
+    return ccol >= lanes * (n_comp // lanes)
+
+
+@_jit
+def _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop, ccol, k0):
+    """The reference's smoothed composite at its row `q` (in [0, main_h)) of scan line
+    `j`: from `strip` where that row is an interior one held there, else computed here
+    with the composite's replicated border rows."""
+    r = k0.size // 2
+    p = main_top[j] + q - strip_top[j]
+    if q >= r and q < main_h - r and p >= 0 and p < strip.shape[0] and not np.isnan(strip[p, j]):
+        return strip[p, j]
+    h = scan.shape[0]
+    n_comp = colsrc.size
+    plain_rows = _plain(ccol[j], n_comp, ROW_LANES)
+    col = np.empty(2 * r + 1, np.float32)
+    buf = np.empty(2 * r + 1, np.float32)
+    for t in range(2 * r + 1):
+        qq = min(max(q - r + t, 0), main_h - 1)
+        for b in range(2 * r + 1):
+            cc = min(max(ccol[j] - r + b, 0), n_comp - 1)
+            buf[b] = np.float32(scan[min(max(coltop[cc] + qq, 0), h - 1), colsrc[cc]])
+        col[t] = _row_value(buf, k0, 0) if plain_rows else _row_fused(buf, k0, 0)
+    return _col_value(col, r, 1, k0, False, not _plain(ccol[j], n_comp, COL_LANES))
+
+
+@_jit
+def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol, tile):
+    """The window arrays of `_steger.steger_band` (smoothed image and the five
+    derivatives at the `2 k_search + 1` rows around `centre` (W,) of each scan line)
+    and a strip of the smoothed image at `± s_rows` around it, from the scan-frame
+    image `scan` in tiles of `tile` scan lines (each within one of the reference's).
+
+    `colsrc`, `coltop` (n_comp,): the scan line in each column of the reference's
+    composite and the image row of its first row; `ccol` (W,): each scan line's column
+    there.
+
+    **Returns:** `(win, strip, strip_top)`: (6, K, W), (n_strip, W) float32 and the
+    image row of each scan line's first strip row (rows past a tile's own: NaN).
+    """
+    h, w = scan.shape
+    n_comp = colsrc.size
+    r = k0.size // 2
+    kk = 2 * k_search + 1
+    kr = k_search + r
+    sr = max(s_rows, k_search) + r
+    n_tiles = (w + tile - 1) // tile
+    spread = 0
+    for t in range(n_tiles):
+        lo, hi = centre[t * tile], centre[t * tile]
+        for j in range(t * tile, min(t * tile + tile, w)):
+            lo, hi = min(lo, centre[j]), max(hi, centre[j])
+        spread = max(spread, hi - lo)
+    win = np.empty((6, kk, w), np.float32)
+    strip = np.empty((spread + 2 * s_rows + 1, w), np.float32)
+    strip_top = np.empty(w, np.intp)
+    # per tile, flat arrays of rows of `nb` (the tile's scan lines and r more on each
+    # side; the filters' outputs past the tile's own columns are never read)
+    nb = tile + 2 * r
+    n0 = spread + 2 * sr + 1
+    n1 = spread + 2 * kr + 1
+    buf = np.empty(n0 * nb + 2 * r, np.float32)
+    buf[n0 * nb :] = 0.0
+    h0 = np.empty(n0 * nb, np.float32)
+    h1 = np.empty(n1 * nb, np.float32)
+    h2 = np.empty(n1 * nb, np.float32)
+    sm = np.empty((spread + 2 * s_rows + 1) * nb, np.float32)
+    dv = np.empty((5, (spread + kk) * nb), np.float32)
+    for t in range(n_tiles):
+        j0 = t * tile
+        n = min(tile, w - j0)
+        lo, hi = centre[j0], centre[j0]
+        for j in range(j0, j0 + n):
+            lo, hi = min(lo, centre[j]), max(hi, centre[j])
+        # the composite's rows lo - sr .. hi + sr around the tile (h1, h2: the inner ones)
+        m0 = hi - lo + 2 * sr + 1
+        m1 = hi - lo + 2 * kr + 1
+        c_first = ccol[j0] - r
+        c_last = c_first + n + 2 * r - 1
+        top0 = coltop[min(max(c_first, 0), n_comp - 1)]
+        simple = (
+            c_first >= 0 and c_last < n_comp and coltop[c_last] == top0
+            and colsrc[c_last] - colsrc[c_first] == n + 2 * r - 1
+        )  # fmt: skip
+        row0 = lo - sr - coltop[ccol[j0]]  # the composite's row of the first one
+        for q in range(m0):
+            if simple:
+                rho = min(max(top0 + row0 + q, 0), h - 1)
+                src = scan[rho, colsrc[c_first] : colsrc[c_first] + n + 2 * r]
+                dst = buf[q * nb : q * nb + n + 2 * r]
+                for b in range(n + 2 * r):
+                    dst[b] = np.float32(src[b])
+            else:
+                for b in range(n + 2 * r):
+                    cc = min(max(c_first + b, 0), n_comp - 1)
+                    rho = min(max(coltop[cc] + row0 + q, 0), h - 1)
+                    buf[q * nb + b] = np.float32(scan[rho, colsrc[cc]])
+        q_in = sr - kr  # h0's row of h1's first
+        _row_pass(buf, 0, k0, h0, 0, q_in * nb)
+        _row_pass3(buf, q_in * nb, k0, k1, k2, h0[q_in * nb :], h1, h2, 0, m1 * nb)
+        _row_pass(buf, (q_in + m1) * nb, k0, h0, (q_in + m1) * nb, (m0 - q_in - m1) * nb)
+        for i in range(n):
+            if _plain(ccol[j0 + i], n_comp, ROW_LANES):
+                for q in range(m0):
+                    h0[q * nb + i] = _row_value(buf, k0, q * nb + i)
+                for q in range(m1):
+                    h1[q * nb + i] = _row_value(buf, k1, (q + sr - kr) * nb + i)
+                    h2[q * nb + i] = _row_value(buf, k2, (q + sr - kr) * nb + i)
+        # column passes: the derivatives at the rows lo - k_search .. hi + k_search and
+        # the smoothed image at lo - s_rows .. hi + s_rows
+        n_d = hi - lo + kk
+        n_s = hi - lo + 2 * s_rows + 1
+        f0, f1 = r * nb, (sr - k_search) * nb
+        _col_pass2(h1, f0, nb, k0, k1, dv[0], dv[3], n_d * nb)  # r_x, r_xy
+        _col_pass2(h0, f1, nb, k2, k1, dv[4], dv[1], n_d * nb)  # r_yy, r_y
+        _col_pass(h2, f0, nb, k0, False, dv[2], n_d * nb)  # r_xx
+        fs = (sr - s_rows) * nb
+        _col_pass(h0, fs, nb, k0, False, sm, n_s * nb)
+        for i in range(n):
+            j = j0 + i
+            if _plain(j, w, COL_LANES):
+                for p in range(n_d):
+                    e = p * nb + i
+                    dv[0, e] = _col_value(h1, f0 + e, nb, k0, False, False)
+                    dv[1, e] = _col_value(h0, f1 + e, nb, k1, True, False)
+                    dv[2, e] = _col_value(h2, f0 + e, nb, k0, False, False)
+                    dv[3, e] = _col_value(h1, f0 + e, nb, k1, True, False)
+                    dv[4, e] = _col_value(h0, f1 + e, nb, k2, False, False)
+            if _plain(ccol[j], n_comp, COL_LANES):
+                for p in range(n_s):
+                    sm[p * nb + i] = _col_value(h0, fs + p * nb + i, nb, k0, False, False)
+            off = centre[j] - lo
+            for o in range(kk):
+                win[0, o, j] = sm[(off + s_rows - k_search + o) * nb + i]
+                for d in range(5):
+                    win[d + 1, o, j] = dv[d, (off + o) * nb + i]
+            strip_top[j] = lo - s_rows
+        for p in range(strip.shape[0]):
+            for i in range(n):
+                strip[p, j0 + i] = sm[p * nb + i] if p < n_s else np.nan
+    return win, strip, strip_top
+
+
+@_jit_inline
+def _smooth_read(q, j, strip, strip_top, main_top, main_h, r):
+    """`_smooth_at` where `strip` holds the value (NaN elsewhere)."""
+    p = main_top[j] + q - strip_top[j]
+    if q >= r and q < main_h - r and p >= 0 and p < strip.shape[0]:
+        return strip[p, j]
+    return np.float32(np.nan)
 
 
 @_jit
 def band_lines(
-    r, rx, ry, rxx, rxy, ryy, rows, smooth, top, ccol, lo, hi, bg_off, sigma, s_total,
-    reach, inside, fwhm_per_sigma, window,
+    r, rx, ry, rxx, rxy, ryy, rows, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+    ccol, k0, lo, hi, bg_off, sigma, s_total, reach, inside, fwhm_per_sigma, window,
 ):  # fmt: skip
     """`_select`, `_evaluate` and `_asymmetry` of `_steger.steger_band` in one pass.
 
     `r .. ryy`: the (K, W) float32 window derivatives; `rows`: (K, W) their image rows;
-    `smooth`: the smoothed composite (flattened rows of `n_cols`), read at the image
-    row `row` of scan line `j` at `(row - top[j]) * n_cols + ccol[j]`.
+    the reference's smoothed composite (`main_h` rows, row `row - main_top[j]` of scan
+    line `j` at image row `row`) is read through `_smooth_at` (`strip`, `strip_top`,
+    `scan`, `colsrc`, `coltop`, `ccol`, `k0`: see `band_window`).
 
     **Returns:** `(y, strength, width, found, row, asym, ny, ok)`; `ok` is False when a
     background sample falls outside the composite (the caller then runs the reference,
     which raises).
     """
     k_rows, n = rx.shape
-    h_s, n_cols = smooth.shape
-    flat = smooth.reshape(-1)
+    r_k = k0.size // 2
+    sampled = np.empty(3)
     inside32 = _F32(inside)
     best = np.empty(n, np.intp)
     found = np.zeros(n, np.bool_)
@@ -264,12 +578,19 @@ def band_lines(
     two_off = _F32(2.0 * bg_off)
     for j in range(n):
         row = rows[best[j], j]
-        i0 = (row - bg_off - top[j]) * n_cols + ccol[j]
-        i1 = (row + bg_off - top[j]) * n_cols + ccol[j]
-        if i0 < 0 or i1 < 0 or i0 >= flat.size or i1 >= flat.size:
+        q0 = row - bg_off - main_top[j]
+        q1 = row + bg_off - main_top[j]
+        if q0 < 0 or q1 < 0 or q0 >= main_h or q1 >= main_h:
             return (np.empty(0), np.empty(0), np.empty(0), found, np.empty(0), np.empty(0),
                     np.empty(0), False)  # fmt: skip
-        b0, b1 = flat[i0], flat[i1]
+        b0 = _smooth_read(q0, j, strip, strip_top, main_top, main_h, r_k)
+        if np.isnan(b0):
+            b0 = _smooth_at(q0, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+                            ccol, k0)  # fmt: skip
+        b1 = _smooth_read(q1, j, strip, strip_top, main_top, main_h, r_k)
+        if np.isnan(b1):
+            b1 = _smooth_at(q1, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+                            ccol, k0)  # fmt: skip
         bg[j] = half * (b0 + b1)
         grad_y[j] = (b1 - b0) / two_off
     grad_x = np.zeros(n, np.float32)
@@ -328,10 +649,24 @@ def band_lines(
         ok = found[j] and np.isfinite(y[j])
         yc = y[j] if ok else rk
         delta = min(s_total / max(abs(nyk), 0.2), np.float64(reach))
-        tj, cj = top[j], ccol[j]
-        centre = _interp(flat, yc, tj, cj, h_s, n_cols)
-        plus = _interp(flat, yc + delta, tj, cj, h_s, n_cols)
-        minus = _interp(flat, yc - delta, tj, cj, h_s, n_cols)
+        # the smoothed composite at yc, yc + delta, yc - delta (linear), rows clipped
+        for e in range(3):
+            pos = yc if e == 0 else (yc + delta if e == 1 else yc - delta)
+            lo_f = np.floor(pos)
+            f = pos - lo_f
+            li = np.intp(lo_f)
+            c0 = min(max(li - main_top[j], 0), main_h - 1)
+            c1 = min(max(li + 1 - main_top[j], 0), main_h - 1)
+            v0 = _smooth_read(c0, j, strip, strip_top, main_top, main_h, r_k)
+            if np.isnan(v0):
+                v0 = _smooth_at(c0, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+                                ccol, k0)  # fmt: skip
+            v1 = _smooth_read(c1, j, strip, strip_top, main_top, main_h, r_k)
+            if np.isnan(v1):
+                v1 = _smooth_at(c1, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+                                ccol, k0)  # fmt: skip
+            sampled[e] = (1 - f) * v0 + f * v1
+        centre, plus, minus = sampled[0], sampled[1], sampled[2]
         hgt = centre - bg[j]
         if ok and hgt > 0:
             asym[j] = (plus - minus) / hgt
@@ -533,13 +868,50 @@ def column_argmax(a):
 
 
 @_jit
+def _select(a, k):
+    """The `k`-th smallest entry of `a` (reordered in place; no NaN): quickselect with
+    a median-of-three pivot, leaving `a[:k]` <= `a[k]`."""
+    lo, hi = 0, a.size - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@_jit
 def _median(x):
     """`_image._median` (the mean of the two middle values for an even count)."""
-    s = np.sort(x)
+    s = x.copy()
     m = s.size // 2
+    upper = _select(s, m)
     if s.size % 2:
-        return s[m]
-    return (s[m - 1] + s[m]) / 2
+        return upper
+    lower = s[0]
+    for i in range(1, m):
+        lower = max(lower, s[i])
+    return (lower + upper) / 2
 
 
 @_jit
@@ -596,3 +968,174 @@ def consistent_passes(yv, valid, keep, off_curve, half, floor_px):
                 valid[i] and not (judged[i] and r[i] > thr) and not (off_curve[i] and not judged[i])
             )
     return keep
+
+
+@_jit
+def clipped_lines(flat, stride_y, stride_x, n_rows, found, row, centre, level):
+    """The test of `_extract`'s `clipped` (before its `valid &`): at least two of the
+    three pixels at the rounded row (`row` where `found`, else `centre`; then `centre`)
+    at or above `level`, per scan line; `flat` read at `y stride_y + x stride_x`."""
+    n = centre.size
+    out = np.zeros(n, np.bool_)
+    for j in range(n):
+        for pass_ in range(2):
+            at = row[j] if (pass_ == 0 and found[j]) else centre[j]
+            c = min(max(np.intp(np.rint(at)), 0), n_rows - 1)
+            count = 0
+            for d in range(-1, 2):
+                y = min(max(c + d, 0), n_rows - 1)
+                count += flat[y * stride_y + j * stride_x] >= level
+            if count >= 2:
+                out[j] = True
+    return out
+
+
+
+@_jit
+def cubic_seed(y, valid):
+    """The robust global cubic of `_link.consistent`: which valid centres it keeps
+    (`off_curve`: the valid ones it refuses). The same steps; the normal equations are
+    summed here in order (BLAS may order the sums otherwise: the coefficients can differ
+    in the last bits, which moves a centre across a threshold only by that much)."""
+    n = y.size
+    m = 0
+    for i in range(n):
+        m += valid[i]
+    x = np.empty(m, np.intp)
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            x[k] = i
+            k += 1
+    mean = 0.0
+    for i in range(m):
+        mean += x[i]
+    mean = mean / m
+    span = max(float(x[m - 1] - x[0]), 1.0)
+    xs = np.empty(m)
+    yx = np.empty(m)
+    for i in range(m):
+        xs[i] = (x[i] - mean) / span
+        yx[i] = y[x[i]]
+    half_n = m // 2
+    slopes = np.empty(half_n)
+    for i in range(half_n):
+        slopes[i] = (yx[half_n + i] - yx[i]) / (xs[half_n + i] - xs[i])
+    slope = _median(slopes)
+    r0 = np.empty(m)
+    for i in range(m):
+        r0[i] = yx[i] - slope * xs[i]
+    mid = _median(r0)
+    for i in range(m):
+        r0[i] = abs(r0[i] - mid)
+    lim = max(20.0, 5.0 * 1.4826 * _median(r0))
+    seed = np.empty(m, np.bool_)
+    for i in range(m):
+        seed[i] = r0[i] <= lim
+    r = np.empty(m)
+    for _ in range(2):
+        a = np.zeros((4, 4))
+        b = np.zeros(4)
+        for i in range(m):
+            if seed[i]:
+                p = (1.0, xs[i], xs[i] * xs[i], xs[i] * xs[i] * xs[i])
+                for u in range(4):
+                    for v in range(4):
+                        a[u, v] += p[u] * p[v]
+                    b[u] += p[u] * yx[i]
+        for u in range(4):
+            a[u, u] += 1e-12
+        coef = np.linalg.solve(a, b)
+        n_seed = 0
+        for i in range(m):
+            x1 = xs[i]
+            r[i] = abs(yx[i] - (coef[0] + coef[1] * x1 + coef[2] * (x1 * x1)
+                                + coef[3] * (x1 * x1 * x1)))  # fmt: skip
+            n_seed += seed[i]
+        kept = np.empty(n_seed)
+        k = 0
+        for i in range(m):
+            if seed[i]:
+                kept[k] = r[i]
+                k += 1
+        lim = max(1.0, 4.0 * 1.4826 * _median(kept))
+        n_seed = 0
+        for i in range(m):
+            seed[i] = r[i] <= lim
+            n_seed += seed[i]
+        if n_seed < 12:
+            seed[:] = True
+            break
+    off_curve = np.zeros(n, np.bool_)
+    for i in range(m):
+        if not seed[i]:
+            off_curve[x[i]] = True
+    return off_curve
+
+
+@_jit
+def band_layout(centre, tile, half, r, k_search):
+    """`_steger._layout` and the arrays `_steger._band_compiled` derives from it, for
+    the scan lines' rounded track `centre` (W,): `(main_top, height, ccol, colsrc,
+    coltop, rows)`: each scan line's first composite row, the composite's height,
+    each scan line's column, each column's scan line and first row, and the (K, W)
+    image rows of the windows."""
+    w = centre.size
+    n_tiles = (w + tile - 1) // tile
+    tile_w = tile + 2 * r
+    top = np.empty(n_tiles, np.intp)
+    start = np.empty(n_tiles, np.intp)
+    spread = 0
+    for t in range(n_tiles):
+        lo = hi = centre[min(t * tile, w - 1)]
+        for j in range(t * tile, t * tile + tile):
+            c = centre[min(j, w - 1)]  # (past the end: the last scan line's)
+            lo, hi = min(lo, c), max(hi, c)
+        top[t] = lo - half
+        spread = max(spread, hi - lo)
+        start[t] = min(max(t * tile - r, 0), max(w, tile_w) - tile_w)
+    height = spread + 2 * half + 1
+    main_top = np.empty(w, np.intp)
+    ccol = np.empty(w, np.intp)
+    for j in range(w):
+        t = j // tile
+        main_top[j] = top[t]
+        ccol[j] = t * tile_w + j - start[t]
+    n_comp = n_tiles * tile_w
+    colsrc = np.empty(n_comp, np.intp)
+    coltop = np.empty(n_comp, np.intp)
+    for cc in range(n_comp):
+        t = cc // tile_w
+        colsrc[cc] = min(start[t] + cc % tile_w, w - 1)
+        coltop[cc] = top[t]
+    kk = 2 * k_search + 1
+    rows = np.empty((kk, w), np.intp)
+    for o in range(kk):
+        for j in range(w):
+            rows[o, j] = centre[j] - k_search + o
+    return main_top, height, ccol, colsrc, coltop, rows
+
+
+@_jit
+def coarse_scan(small, d):
+    """`_coarse.coarse_track`'s first steps on a float32 `small` (no mask) in one pass:
+    the ridge response (`ridge_rows`), the first maximum per scan line (`idx`), its
+    response and the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
+    it)."""
+    ridge = ridge_rows(small, d)
+    hs, ws = small.shape
+    idx = column_argmax(ridge)
+    resp = np.empty(ws, np.float32)
+    pos = np.empty(ws)
+    half, two = _F32(0.5), _F32(2.0)
+    for j in range(ws):
+        k = idx[j]
+        c = ridge[k, j]
+        up = ridge[max(k - 1, 0), j]
+        down = ridge[min(k + 1, hs - 1), j]
+        denom = up - two * c + down
+        frac = half * (up - down) / denom if denom < 0 else _F32(0.0)
+        frac = min(max(frac, _F32(-0.5)), _F32(0.5))
+        resp[j] = c
+        pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
+    return ridge, idx, resp, pos

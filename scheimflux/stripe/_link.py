@@ -161,6 +161,10 @@ def consistent(
     if valid.sum() < 12:
         return keep
     yv = np.where(valid, y, 0.0)
+    if _fast.enabled and y.dtype == np.float64:
+        off_curve = _fast.cubic_seed(y, np.ascontiguousarray(valid, np.bool_))
+        keep &= ~off_curve
+        return _fast.consistent_passes(yv, valid, keep, off_curve, int(half), float(floor_px))
     # Seed: a global cubic, fitted robustly, down-weights gross runs off the line for
     # the first local fit only (every centre is judged by the local fits).
     x = np.flatnonzero(valid)

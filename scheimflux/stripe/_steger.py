@@ -292,6 +292,24 @@ def steger_full(img: np.ndarray, width_px: float, track, tolerance: float) -> Sc
     return _asymmetry(sample, res, bg, grad_y, ny, s_total, bg_off)
 
 
+def _layout(w: int, centre: np.ndarray, half: int, r: int):
+    """The composite's layout of `_tiles` for `w` scan lines: each scan line's first
+    row, the composite's height, each tile's first scan line, the tile width and each
+    scan line's column in the composite."""
+    n_tiles = -(-w // _TILE)
+    tile_w = _TILE + 2 * r
+    tail = n_tiles * _TILE - w
+    padded = np.concatenate([centre, np.full(tail, centre[-1])]) if tail else centre
+    padded = padded.reshape(n_tiles, _TILE)
+    lo, hi = padded.min(axis=1), padded.max(axis=1)
+    top = lo - half
+    height = int((hi - lo).max()) + 2 * half + 1
+    start = np.clip(np.arange(n_tiles) * _TILE - r, 0, max(w, tile_w) - tile_w)
+    tile = np.arange(w) // _TILE
+    ccol = tile * tile_w + np.arange(w) - start[tile]
+    return top, height, start, tile_w, tile, ccol
+
+
 def _tiles(scan: np.ndarray, centre: np.ndarray, half: int, r: int):
     """The band's tiles of `_TILE` scan lines side by side in one image.
 
@@ -307,17 +325,10 @@ def _tiles(scan: np.ndarray, centre: np.ndarray, half: int, r: int):
     float32, each tile's first row, and each scan line's column in the composite.
     """
     h, w = scan.shape
-    n_tiles = -(-w // _TILE)
-    tile_w = _TILE + 2 * r
-    tail = n_tiles * _TILE - w
-    padded = np.concatenate([centre, np.full(tail, centre[-1])]) if tail else centre
-    padded = padded.reshape(n_tiles, _TILE)
-    lo, hi = padded.min(axis=1), padded.max(axis=1)
-    top = lo - half
-    height = int((hi - lo).max()) + 2 * half + 1
+    top, height, start, tile_w, tile, ccol = _layout(w, centre, half, r)
+    n_tiles = start.size
     if w < tile_w:  # narrower than one tile: replicate the last scan line
         scan = np.concatenate([scan, np.repeat(scan[:, -1:], tile_w - w, axis=1)], axis=1)
-    start = np.clip(np.arange(n_tiles) * _TILE - r, 0, scan.shape[1] - tile_w)
     rows = np.clip(top[None, :] + np.arange(height)[:, None], 0, h - 1)
     sh, sw = scan.strides
     view = np.lib.stride_tricks.as_strided(
@@ -328,9 +339,6 @@ def _tiles(scan: np.ndarray, centre: np.ndarray, half: int, r: int):
     else:
         comp = view[rows, start[None, :]].reshape(height, n_tiles * tile_w)
         comp = comp.astype(np.float32, copy=False)
-    cols = np.arange(w)
-    tile = cols // _TILE
-    ccol = tile * tile_w + cols - start[tile]
     return comp, top[tile], ccol
 
 
@@ -344,6 +352,46 @@ def _gather_window(images: list[np.ndarray], row0: np.ndarray, ccol: np.ndarray,
     n_cols = images[0].shape[1]
     flat = (row0 * n_cols + ccol)[None, :] + (np.arange(k) * n_cols)[:, None]
     return [np.take(a, flat) for a in images]
+
+
+# Scan lines per tile of the compiled band (within one of the composite's `_TILE`).
+_FAST_TILE = 32
+
+
+_FLAT: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _kernels_flat(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`gaussian_kernels(sigma)` as contiguous 1-D arrays (cached)."""
+    out = _FLAT.get(sigma)
+    if out is None:
+        out = tuple(np.ascontiguousarray(k.ravel()) for k in gaussian_kernels(sigma))
+        if len(_FLAT) < 256:
+            _FLAT[sigma] = out
+    return out
+
+
+def _band_compiled(scan, centre, sigma, r, bg_off, margin, s_total) -> ScanLines | None:
+    """`steger_band`'s result from the compiled loops (`_fast.band_window` and
+    `_fast.band_lines`), None where they defer to the reference. They filter only the
+    pixels that are read, tile by tile, with OpenCV's arithmetic and the reference
+    composite's layout (`_layout`), so the values are the reference's."""
+    k_search = _SEARCH + 1
+    main_top, height, ccol, colsrc, coltop, rows = _fast.band_layout(
+        centre, _TILE, margin + r, r, k_search
+    )
+    k0, k1, k2 = _kernels_flat(sigma)
+    win, strip, strip_top = _fast.band_window(
+        scan, centre, k0, k1, k2, k_search, _SEARCH + 2 + bg_off, colsrc, coltop, ccol, _FAST_TILE,
+    )  # fmt: skip
+    y, strength, width, found, row, asym, ny, ok = _fast.band_lines(
+        *win, rows, strip, strip_top, main_top, height, scan, colsrc, coltop, ccol, k0, 1,
+        2 * k_search, bg_off, sigma, s_total, bg_off, _INSIDE, FWHM_PER_SIGMA,
+        _NORMAL_WINDOW,
+    )  # fmt: skip
+    if ok and found.any():
+        return ScanLines(y, strength, width, found, row, asym, ny)
+    return None
 
 
 def steger_band(
@@ -366,8 +414,13 @@ def steger_band(
         margin = bg_off + _SEARCH + 1
     h, w = scan.shape
     centre = np.rint(track).astype(np.intp)
-    comp, top_c, ccol = _tiles(scan, centre, margin + r, r)
     k_search = _SEARCH + 1
+    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
+    if _fast.enabled and w >= _NORMAL_WINDOW:
+        lines = _band_compiled(scan, centre, sigma, r, bg_off, margin, s_total)
+        if lines is not None:
+            return lines
+    comp, top_c, ccol = _tiles(scan, centre, margin + r, r)
     crop = margin - k_search
     k0, k1, k2 = gaussian_kernels(sigma)
 
@@ -398,15 +451,6 @@ def steger_band(
     ]
     rows = centre[None, :] + np.arange(-k_search, k_search + 1)[:, None]
     win = _gather_window([smooth], centre - top_c - k_search, ccol, 2 * k_search + 1) + d
-    s_total = math.hypot(width_px / FWHM_PER_SIGMA, sigma)
-    if _fast.enabled and w >= _NORMAL_WINDOW:
-        # the steps below in one compiled pass (same arithmetic: `_fast.py`)
-        y, strength, width, found, row, asym, ny, ok = _fast.band_lines(
-            *win, rows, smooth, top_c, ccol, 1, 2 * k_search, bg_off, sigma, s_total,
-            bg_off, _INSIDE, FWHM_PER_SIGMA, _NORMAL_WINDOW,
-        )  # fmt: skip
-        if ok and found.any():
-            return ScanLines(y, strength, width, found, row, asym, ny)
     # Background samples beside the strongest line point (as in the full frame).
     selection = _select(win, 1, 2 * k_search)
     cols = np.arange(w)
