@@ -165,8 +165,9 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
 # the 8-noise-std threshold, and the centres kept there 0.11 px RMS off the exact line
 # (the noise limit: a Cramer-Rao std of ~0.27 px per scan line for a 6-level, 5 px line
 # in this noise, ~0.12 px after Steger's smoothing along the line); the white bits give
-# 63 strong centres (31 symmetric), and bit borders along the line refuse the rest. Measured: grey 28
-# centres (0.080 px RMS, largest 0.14 px), colour 155 (0.104 px RMS, one 0.64 px off).
+# 63 strong centres (31 symmetric), and bit borders along the line refuse the rest.
+# Measured: grey 28 centres (0.080 px RMS, largest 0.14 px), colour 155 (0.104 px RMS,
+# one 0.64 px off).
 # The bounds below (156 centres, RMS < 0.1 px, none over 0.5 px) would need ~100
 # centres from the black print at ~0.12 px each: not met by any threshold honestly.
 _WEAK_LINE = "peak 0.3: the line over the black print is below the extractor's noise threshold"

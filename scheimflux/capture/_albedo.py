@@ -79,8 +79,8 @@ def laser_off_model(
 
     **Arguments:**
     - `image`: the grey laser-on image `(H, W)`.
-    - `target`: a checkerboard or ChArUco board (None for a circle grid: its dots are
-      handled by the opening, `laser_removed`).
+    - `target`: a checkerboard or ChArUco board (a circle grid gives None: its dots
+      are handled by the opening, `laser_removed`).
     - `corners_px`: `(M, 2)` the target points the line has not moved (NaN: left out).
     - `mask`: `(H, W)` bool, the target's region; the model is fitted and valid in it.
     - `line_px`: `(N, 2)` the line's own pixels (`clipped_pixels`): the pixels within
@@ -103,6 +103,8 @@ def laser_off_model(
     xy = np.asarray(target.points_mm, np.float64)[:, :2]
     degree = 3 if ok.sum() >= 40 else 2 if ok.sum() >= 20 else 1
     if ok.sum() < 12:
+        return None
+    if cv2.findHomography(xy[ok], uv[ok], 0)[0] is None:  # degenerate (collinear) points
         return None
     smooth = _SmoothMap(xy[ok], uv[ok], degree)
     if not smooth.rms <= MAP_RMS_MAX:
