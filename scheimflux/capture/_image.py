@@ -16,9 +16,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..stripe._image import estimate_noise
 from ..targets._circles import CircleGrid
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
+from ._albedo import laser_off_model
 from ._laser import (
     JPEG_BLOCK_PX,
     clipped_pixels,
@@ -31,6 +33,11 @@ from ._laser import (
 from ._region import board_region, board_stripe, laser_free
 
 __all__ = ["ImageLine", "find_target", "line_and_points"]
+
+# The pixels within this many line widths (FWHM) of a clipped line's own pixels are left
+# out of the drawn laser-off image's level fit: a line clipped 150-fold on white (a
+# plateau of ~14 px for 5 px) falls to the noise ~2 FWHM from its centre.
+_LINE_REACH_FWHM = 6.0
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -180,23 +187,43 @@ def line_and_points(
     single = single and off is None
     grey = single and laser_in_board(image)
     shared = grey or (single and jpeg)
-    attempts = [(simg, None)]  # (signal image, holes)
+    w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
+    clip, moved = np.zeros((0, 2)), np.zeros(len(corners), bool)
+    if grey:
+        # a clipped line's own pixels: where the line is, even where the extractor
+        # refuses its centres (a plateau over checker edges); the points next to them
+        # move (a line: no wider than half a pitch of the points; white squares that
+        # clip are no line)
+        clip = clipped_pixels(image, mask, 0.25 * _pitch_px(corners))
+        moved = off_local_grid(target, corners)
+        if len(clip):
+            moved |= near_laser(target, corners, clip, w5, join=False)
+    attempts = [(simg, None, off)]  # (signal image, holes, laser-off image)
     if grey and isinstance(target, CircleGrid):
         grow = _hole_margin(corners, target, stripe_width_px)
-        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow))]
+        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow), None)]
         if opened is not None:
             # first the line alone: the image less its opening; where the line crosses a
             # dot's edge the opening leaves a notch, so no centre on a dot (grown by a line
             # width) is kept. The attempt that keeps more centres wins (a saturated line
             # can be refused in either)
-            w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
             diff = image.astype(np.float32) - opened.astype(np.float32)
-            attempts.insert(0, (diff, target_holes(target, corners, shape, margin_px=w5)))
+            attempts.insert(0, (diff, target_holes(target, corners, shape, margin_px=w5), None))
+    elif grey and len(clip):
+        # a clipped line on a printed pattern: its plateau's rims are read against the
+        # pattern drawn from the points the line has not moved (`laser_off_model`), as
+        # against a laser-off image; the image alone only where that cannot be drawn or
+        # keeps no centre
+        drawn = np.where(moved[:, None], np.nan, corners)
+        model = laser_off_model(image, target, drawn, mask, clip, reach_px=_LINE_REACH_FWHM * w5,
+                                noise=estimate_noise(image))  # fmt: skip
+        if model is not None:
+            attempts = [(simg, None, model), (simg, None, None)]
     ok = None
-    for signal, holes in attempts:
+    for signal, holes, background in attempts:
         try:
             res_i, inside = board_stripe(
-                signal, mask, width_px=stripe_width_px, background=off, holes=holes
+                signal, mask, width_px=stripe_width_px, background=background, holes=holes
             )
         except ValueError as err:
             note(f"no stripe extracted: {err}")
@@ -204,11 +231,14 @@ def line_and_points(
         ok_i = res_i.valid & inside
         if out.stripe is None or ok_i.sum() > len(out.stripe_uv):
             out.stripe, ok, out.stripe_uv = res_i, ok_i, res_i.uv[ok_i]
+        if background is not None and off is None and len(out.stripe_uv):
+            note("clipped line: its plateau read against the target drawn from its points")
+            break  # the drawn laser-off image found the line
     if len(out.stripe_uv) == 0 and out.stripe is not None:
         note("no laser line found on the board")
     if not shared:
         return out
-    hit = off_local_grid(target, corners)
+    hit = moved if grey else off_local_grid(target, corners)
     if len(out.stripe_uv):
         w = out.stripe.width[ok]
         w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0
@@ -216,15 +246,6 @@ def line_and_points(
             w = max(w, float(stripe_width_px))
         hit |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
                           extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
-    if grey:
-        # a clipped line's own pixels, where the extractor refused its centres (a
-        # plateau over checker edges): the points next to them move as much
-        # (a line: no wider than half a pitch of the points; white squares that clip
-        # are no line)
-        clip = clipped_pixels(image, mask, 0.25 * _pitch_px(corners))
-        if len(clip):
-            w5 = 5.0 if stripe_width_px is None else float(stripe_width_px)
-            hit |= near_laser(target, corners, clip, w5, join=False)
     if hit.any():
         out.corners = corners = corners.copy()
         corners[hit] = np.nan
