@@ -21,6 +21,7 @@ from scheimflux.calibrate._gauge import (
 )
 from scheimflux.calibrate._model import camera_residuals, make_data
 from scheimflux.calibrate._solve import _dense, _released
+from scheimflux.io import Nominal, Observations, View
 from scheimflux.simulate import build_rig, load_lens, paraxial, simulate_observations
 from scheimflux.targets import Checkerboard
 
@@ -59,6 +60,41 @@ def test_released_profile_matches_the_linear_least_squares_profile():
     g = A.T @ M @ (A @ p - b)
     np.testing.assert_allclose(rel.hessian, S, rtol=1e-6, atol=1e-9 * np.abs(S).max())
     np.testing.assert_allclose(rel.gradient, g, rtol=1e-6, atol=1e-9 * np.abs(g).max())
+
+
+def _few_views():
+    """Three views of six corners: enough to pass the observations' checks (the options
+    are checked before anything is solved)."""
+    rng = np.random.default_rng(0)
+    board = np.array([[x, y, 0.0] for y in (0.0, 1.0) for x in (0.0, 1.0, 2.0)])
+    views = []
+    for _ in range(3):  # a plane seen in perspective: a homography of the board
+        H = np.array([[150.0, 0, 200], [0, 150, 200], [0, 0, 1]]) + rng.normal(0, 1e-2, (3, 3))
+        uvw = np.c_[board[:, :2], np.ones(6)] @ H.T
+        views.append(View(uvw[:, :2] / uvw[:, 2:], np.zeros((0, 2))))
+    return Observations(800, 600, (0.0044, 0.0044), board, views, Nominal(50.0, 0.5, (1.0, 2.0)))
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(freeze=("camera.dx", "camera.dy", "camera.f")), "own frozen set"),
+        (dict(distortion="none"), "needs distortion"),
+        (dict(model="pinhole", distortion="none"), "thick lens's"),
+        (dict(model="opencv"), "thick lens's"),
+        (dict(model="thick-lens-noncentral", freeze=("camera.f",)), "own frozen set"),
+    ],
+)
+def test_profile_gauge_refuses_what_it_would_not_apply(kw, match):
+    # the profile gauge chooses its own frozen set and needs the distortion's centre to
+    # see the tilt: an explicit freeze, no distortion or another model would otherwise
+    # run the held gauge without saying so
+    obs = _few_views()
+    for fn in (calibrate_camera, sf.calibrate):
+        with pytest.raises(ValueError, match=match):
+            fn(obs, gauge="profile", **kw)
+    with pytest.raises(ValueError, match="gauge must be one of"):
+        calibrate_camera(obs, gauge="free")
 
 
 @pytest.fixture(scope="module")
