@@ -312,8 +312,8 @@ def _check_gauge(gauge, model, distortion, freeze) -> None:
         )
     if freeze is not None:
         raise ValueError(
-            "gauge='profile' sets its own frozen set (pixel pitch and f); drop freeze= or "
-            "use gauge='held'"
+            "gauge='profile' sets its own frozen set (pixel pitch and f); drop freeze "
+            "(--freeze) or use gauge='held'"
         )
 
 
