@@ -13,7 +13,8 @@ imaging (`imaging="centroid"`: each pixel is the centroid of the bundle filling 
 stop, vignetting included; the lens's own f-number unless `--f-number`). Each data set
 is calibrated with every model in `--models` (default: scheimflux's central thick lens
 and its non-central thick lens, both with their default options, and OpenCV's tilted
-model, `model="opencv", opencv_flags="tilted"`); `thick-lens-noncentral/released-tilt`
+model, `model="opencv", opencv_flags="tilted"`); `thick-lens-noncentral/profile` is the
+non-central thick lens with `gauge="profile"`; `thick-lens-noncentral/released-tilt`
 is a diagnostic (`RELEASED_TILT`: the tilt released in the non-central solve), and any
 other name is passed through to `calibrate(model=)`.
 
@@ -109,6 +110,8 @@ CONFIGS = {
     "thick-lens": dict(),
     "thick-lens-noncentral": dict(model="thick-lens-noncentral"),
     "opencv": dict(model="opencv", opencv_flags="tilted"),
+    # the non-central thick lens with `gauge="profile"` (tilt free, axis point profiled)
+    "thick-lens-noncentral/profile": dict(model="thick-lens-noncentral", gauge="profile"),
 }
 
 
@@ -282,7 +285,8 @@ def table(args) -> None:
     )
     ref = "opencv" if "opencv" in models else None
     label = {"thick-lens": "central", "thick-lens-noncentral": "non-central",
-             RELEASED_TILT: "released tilt"}  # fmt: skip
+             RELEASED_TILT: "released tilt",
+             "thick-lens-noncentral/profile": "nc profile"}  # fmt: skip
     lab = [label.get(m, m)[:20] for m in models]
     cols = "".join(f" {x + ' µm':>25}" for x in lab)
     ratios = "".join(f" {x[:12] + ' / cv':>17}" for m, x in zip(models, lab) if ref and m != ref)

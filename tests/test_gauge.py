@@ -18,9 +18,11 @@ from scheimflux.calibrate._gauge import (
     PIXEL_PITCH,
     distorted_freeze,
     gauge_spectrum,
+    profile_axis_point,
 )
 from scheimflux.calibrate._model import camera_residuals, make_data
-from scheimflux.calibrate._solve import _dense, _released
+from scheimflux.calibrate._solve import RankDeficientError, Released, _dense, _released
+from scheimflux.io import Nominal, Observations, View
 from scheimflux.simulate import build_rig, load_lens, paraxial, simulate_observations
 from scheimflux.targets import Checkerboard
 
@@ -59,6 +61,81 @@ def test_released_profile_matches_the_linear_least_squares_profile():
     g = A.T @ M @ (A @ p - b)
     np.testing.assert_allclose(rel.hessian, S, rtol=1e-6, atol=1e-9 * np.abs(S).max())
     np.testing.assert_allclose(rel.gradient, g, rtol=1e-6, atol=1e-9 * np.abs(g).max())
+
+
+def _few_views():
+    """Three views of six corners: enough to pass the observations' checks (the options
+    are checked before anything is solved)."""
+    rng = np.random.default_rng(0)
+    board = np.array([[x, y, 0.0] for y in (0.0, 1.0) for x in (0.0, 1.0, 2.0)])
+    views = []
+    for _ in range(3):  # a plane seen in perspective: a homography of the board
+        H = np.array([[150.0, 0, 200], [0, 150, 200], [0, 0, 1]]) + rng.normal(0, 1e-2, (3, 3))
+        uvw = np.c_[board[:, :2], np.ones(6)] @ H.T
+        views.append(View(uvw[:, :2] / uvw[:, 2:], np.zeros((0, 2))))
+    return Observations(800, 600, (0.0044, 0.0044), board, views, Nominal(50.0, 0.5, (1.0, 2.0)))
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(freeze=("camera.dx", "camera.dy", "camera.f")), "own frozen set"),
+        (dict(distortion="none"), "needs distortion"),
+        (dict(model="pinhole", distortion="none"), "thick lens's"),
+        (dict(model="opencv"), "thick lens's"),
+        (dict(model="thick-lens-noncentral", freeze=("camera.f",)), "own frozen set"),
+    ],
+)
+def test_profile_gauge_refuses_what_it_would_not_apply(kw, match):
+    # the profile gauge chooses its own frozen set and needs the distortion's centre to
+    # see the tilt: an explicit freeze, no distortion or another model would otherwise
+    # run the held gauge without saying so
+    obs = _few_views()
+    for fn in (calibrate_camera, sf.calibrate):
+        with pytest.raises(ValueError, match=match):
+            fn(obs, gauge="profile", **kw)
+    with pytest.raises(ValueError, match="gauge must be one of"):
+        calibrate_camera(obs, gauge="free")
+
+
+def test_profile_skips_points_the_data_cannot_determine(monkeypatch):
+    # A quadratic profile c(p) = ½ (p − p*)ᵀ A (p − p*) with its exact gradient and
+    # Hessian (what `least_squares(release=...)` reports) and inner solves that are rank
+    # deficient for x0 > 1500 px (measured on the Tessar ×0.5 data: a scan point at the
+    # sensor's edge put z0 against e): the profile skips those points and still reaches
+    # p*, to its stopping tolerance (1e-3 px; the Newton step of a quadratic is exact).
+    from types import SimpleNamespace
+
+    p_star = np.array([700.0, 450.0])
+    A = np.array([[2e-3, 5e-4], [5e-4, 1e-3]])
+    calls = {"refused": 0}
+
+    def fit_at(p):
+        d = np.asarray(p, float) - p_star
+        camera = SimpleNamespace(x0=float(p[0]), y0=float(p[1]))
+        rel = Released(AXIS_POINT, A @ d, A)
+        return SimpleNamespace(params=SimpleNamespace(camera=camera), cost=0.5 * d @ A @ d,
+                               steps=1, converged=True, released=rel)  # fmt: skip
+
+    def solve(params):
+        p = (params.camera.x0, params.camera.y0)
+        if p[0] > 1500.0:
+            calls["refused"] += 1
+            raise RankDeficientError("camera.z0 against camera.e")
+        return fit_at(p)
+
+    def with_axis(params, value):
+        return SimpleNamespace(camera=SimpleNamespace(x0=value[0], y0=value[1]))
+
+    import importlib
+
+    gauge = importlib.import_module("scheimflux.calibrate._gauge")
+    monkeypatch.setattr(gauge, "_with_axis_point", with_axis)
+    fit, prof = profile_axis_point(solve, fit_at((300.0, 900.0)),
+                                   bounds=((0.0, 2447.0), (0.0, 2047.0)))  # fmt: skip
+    assert calls["refused"] >= 3  # the scan's points beyond 1500 px
+    assert prof.converged and not prof.at_bound
+    np.testing.assert_allclose(prof.value, p_star, atol=1e-3)
 
 
 @pytest.fixture(scope="module")

@@ -370,3 +370,40 @@ def test_pupil_terms_held_where_the_lens_is_central_to_the_datas_precision():
         k = labels.index(f"camera.{name}")
         assert abs(a - b) <= 1e-3 * np.sqrt(cov[k, k]), (name, a, b, np.sqrt(cov[k, k]))
     assert nc.reprojection_rms_px == pytest.approx(central.reprojection_rms_px, rel=1e-6)
+
+
+# slow: two profiled camera solves and their compilation
+@pytest.mark.slow
+def test_pupil_terms_held_with_the_profile_gauge_too():
+    # The same data as above with `gauge="profile"` (tilt free, axis point profiled):
+    # the pupil terms' F-test applies there as well, so the long lens's pupil is held at
+    # zero, the calibration says so, and the camera is the central profiled one (the
+    # non-central solve with the pupil held starts at the central profile's optimum and
+    # holds the same axis point). Judged in units of each parameter's σ, as above.
+    from scheimflux.calibrate import calibrate_camera
+    from scheimflux.calibrate._gauge import AXIS_POINT
+    from scheimflux.simulate import paper_rig, simulate_observations
+    from scheimflux.targets import Checkerboard
+
+    obs, _ = simulate_observations(
+        paper_rig(), Checkerboard(11, 8, 0.9), n_views=8, corner_noise_px=0.03,
+        stripe_noise_px=0.05, stage_scan=False, seed=3,
+    )  # fmt: skip
+    nc = calibrate_camera(obs, model="thick-lens-noncentral", gauge="profile")
+    central = calibrate_camera(obs, model="thick-lens", gauge="profile")
+    print(nc.notes, nc.axis_profile, central.axis_profile)
+    assert isinstance(nc.camera, ThickLensNonCentral)
+    assert "camera.pupil" in nc.freeze and nc.hold == AXIS_POINT
+    assert "camera.pupil" not in nc.fit.labels
+    np.testing.assert_array_equal(np.asarray(nc.camera.pupil), 0.0)
+    assert any("pupil terms held at 0" in n and "p = " in n for n in nc.notes), nc.notes
+    assert nc.fit.converged and central.fit.converged
+    assert nc.axis_profile.value == central.axis_profile.value
+    cov = np.linalg.inv(central.fit.normal_matrix)
+    labels = list(central.fit.labels)
+    for name in ("e", "z0", "phi", "theta", "x0", "y0"):
+        a, b = float(getattr(nc.camera, name)), float(getattr(central.camera, name))
+        k = labels.index(f"camera.{name}")
+        assert abs(a - b) <= 1e-3 * np.sqrt(cov[k, k]), (name, a, b, np.sqrt(cov[k, k]))
+    assert float(nc.camera.f) == float(central.camera.f)
+    assert nc.reprojection_rms_px == pytest.approx(central.reprojection_rms_px, rel=1e-6)

@@ -206,7 +206,8 @@ def calibrate_camera(
       default: the nominal tilt, or for a closed-form start the axis point, held in every
       solve) or `"profile"` (only the pixel pitch and f held; the tilt free and the axis
       point placed at the minimum of the cost profile, `_gauge.profile_axis_point`;
-      docs/noncentral.md). Ignored otherwise.
+      docs/noncentral.md). `"profile"` with another model, without distortion or with
+      an explicit `freeze` is refused (`ValueError`).
 
     **Returns:** a [`CameraCalibration`][]: the camera, the board poses, the final
     solve's `Fit`, the reprojection RMS (px per coordinate), how it was initialised and
@@ -233,14 +234,12 @@ def calibrate_camera(
             "the pinhole model (paper eq. 14) has no distortion; use "
             "distortion='none' or the thick-lens model"
         )
-    if gauge not in GAUGES:
-        raise ValueError(f"gauge must be one of {GAUGES}, got {gauge!r}")
+    _check_gauge(gauge, model, distortion, freeze)
     camera, poses, how = _initial(obs, model, init)
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
-    if gauge == "profile" and freeze is None and model in THICK_LENS_MODELS:
-        if distortion != "none":
-            camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
-            return _profiled(SystemParams(camera, poses), data, how, obs, model, max_steps, throw)
+    if gauge == "profile":
+        camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
+        return _profiled(SystemParams(camera, poses), data, how, obs, model, max_steps, throw)
     freeze = _model_freeze(model, how, freeze, opencv_flags)
     # The ideal camera first (the distortion at zero, held), then with the distortion
     # free. The distortion is held at run time (`hold`), not frozen: both solves have
@@ -284,19 +283,46 @@ def calibrate_camera(
             camera_residuals, start, data, freeze=freeze, max_steps=max_steps, throw=throw
         )
         if "camera.pupil" not in freeze:
-            fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, data, freeze,
-                                                            max_steps, throw)  # fmt: skip
+
+            def solve_held(p):
+                return least_squares(camera_residuals, p, data, freeze=freeze,
+                                     hold=("camera.pupil",), max_steps=max_steps,
+                                     throw=throw)  # fmt: skip
+
+            fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, freeze,
+                                                            solve_held)  # fmt: skip
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
         fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), notes=notes
     )
 
 
-def _pupil_kept_if_significant(central, fit, start, data, freeze, max_steps, throw):
+def _check_gauge(gauge, model, distortion, freeze) -> None:
+    """Refuse a `gauge` the calibration would not apply (never ignore it silently)."""
+    if gauge not in GAUGES:
+        raise ValueError(f"gauge must be one of {GAUGES}, got {gauge!r}")
+    if gauge == "held":
+        return
+    if model not in THICK_LENS_MODELS:
+        raise ValueError(f"gauge='profile' is the thick lens's (with distortion), not {model!r}'s")
+    if distortion == "none":
+        raise ValueError(
+            "gauge='profile' needs distortion: without it the tilt and the axis point are an "
+            "exact gauge (use gauge='held')"
+        )
+    if freeze is not None:
+        raise ValueError(
+            "gauge='profile' sets its own frozen set (pixel pitch and f); drop freeze "
+            "(--freeze) or use gauge='held'"
+        )
+
+
+def _pupil_kept_if_significant(central, fit, start, freeze, solve_held):
     """The non-central solve's pupil terms if they reduce the corners' residuals by more
-    than noise would (`nested_f_test` against the central optimum), else the solve with
-    them held at zero (at run time: the same compiled program; the central optimum is
-    its start) and `camera.pupil` added to the frozen set.
+    than noise would (`nested_f_test` against the central optimum), else
+    `solve_held(start)`: the solve with them held at zero (at run time: the same
+    compiled program; the central optimum is its start), and `camera.pupil` added to the
+    frozen set.
 
     **Returns:** `(fit, freeze, notes)`; `notes` says what was decided and why.
     """
@@ -306,8 +332,7 @@ def _pupil_kept_if_significant(central, fit, start, data, freeze, max_steps, thr
     if test.significant:
         return fit, freeze, (f"pupil terms kept: they reduce the corners' residuals "
                              f"significantly ({stat})",)  # fmt: skip
-    held = least_squares(camera_residuals, start, data, freeze=freeze,
-                         hold=("camera.pupil",), max_steps=max_steps, throw=throw)  # fmt: skip
+    held = solve_held(start)
     note = (
         f"pupil terms held at 0: the non-central fit of the corners is not significantly "
         f"better than the central one ({stat}, level {test.alpha:g}); the lens is central "
@@ -340,16 +365,24 @@ def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibrat
     fit = solve(second.params)
     bounds = ((0.0, obs.width - 1.0), (0.0, obs.height - 1.0))
     fit, profile = profile_axis_point(solve, fit, bounds=bounds)
+    freeze, notes = GAUGE_HELD, ()
     if model == "thick-lens-noncentral":
-        # the central thick lens's optimum is the start, the pupil's shift from zero
-        camera = ThickLensNonCentral.from_central(fit.params.camera)
-        fit = solve(SystemParams(camera, fit.params.board_poses))
+        # the central thick lens's optimum is the start, the pupil's shift from zero;
+        # the pupil terms kept only where the F-test finds them (as with the held gauge)
+        central = fit
+        start = SystemParams(ThickLensNonCentral.from_central(fit.params.camera),
+                             fit.params.board_poses)  # fmt: skip
+        fit = solve(start)
+        fit, freeze, notes = _pupil_kept_if_significant(
+            central, fit, start, freeze, lambda p: solve(p, AXIS_POINT + ("camera.pupil",))
+        )
     if throw and not fit.converged:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {fit.message}", fit)
     rms = _rms_px(fit.params, data)
     return CameraCalibration(
-        fit.params.camera, fit.params.board_poses, fit, rms, how, GAUGE_HELD, profile, AXIS_POINT
-    )
+        fit.params.camera, fit.params.board_poses, fit, rms, how, freeze,
+        axis_profile=profile, hold=AXIS_POINT, notes=notes,
+    )  # fmt: skip
 
 
 # Compiled residual evaluation for the summaries (eager evaluation would dispatch every
