@@ -208,6 +208,9 @@ def test_joint_and_sequential_on_noise_free_ray_traced_data():
     assert e_joint < 0.5 * e_seq
 
 
+# slow: a forward-mode derivative through a whole LM solve compiles its own program
+# (the default suite's longest test: 350-420 s on 2 loaded cores)
+@pytest.mark.slow
 def test_implicit_derivative_wrt_an_observation_matches_finite_differences():
     obs, _, _ = _model_observations(0.03, 0.05, seed=1)
     cal = calibrate(obs, distortion="none")
