@@ -44,7 +44,8 @@ ASYMMETRY_MAX = 0.12
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
-# three minimum segments): glints and short reflections alone are not a line.
+# three minimum segments), or a chain of segments that continue one another does
+# (`_chain_span`): glints and short reflections alone are not a line.
 MIN_LINE_FRACTION = 0.05
 # Colour "X-minus-others" without a laser-off image: largest |log| ratio of the albedo
 # (the other channels) on the two sides of a centre. 0.5 (a factor 1.65) refuses an
