@@ -44,7 +44,8 @@ ASYMMETRY_MAX = 0.12
 # Accepted range of a centre's width over the median width of the line.
 WIDTH_RATIO = (0.7, 1.4)
 # A frame holds a line only if one segment spans this fraction of the scan lines (or
-# three minimum segments): glints and short reflections alone are not a line.
+# three minimum segments), or a chain of segments that continue one another does
+# (`_chain_span`): glints and short reflections alone are not a line.
 MIN_LINE_FRACTION = 0.05
 # Colour "X-minus-others" without a laser-off image: largest |log| ratio of the albedo
 # (the other channels) on the two sides of a centre. 0.5 (a factor 1.65) refuses an
@@ -65,6 +66,48 @@ _LOCAL_NOISE_MIN = 0.25
 _TRACK_TRIM = 3
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
+
+
+def _slant(angle: float, orientation: str) -> float:
+    """How many times wider a line whose normal is at `angle` (deg from the u axis) reads
+    along the scan lines of `orientation` than across itself (at most 2)."""
+    a = math.radians(angle)
+    across = abs(math.sin(a)) if orientation == "vertical-scan" else abs(math.cos(a))
+    return 1.0 / max(across, 0.5)
+
+
+def _chain_span(y: np.ndarray, segment: np.ndarray, jump: float, min_line: int) -> int:
+    """Scan lines spanned by the longest chain of linked segments (`segment` labels, -1:
+    none) that continue one another: each next one begins within `min_line` scan lines
+    of the last one's end, and the straight lines fitted to the two meet at the middle
+    of the gap within `jump` px. A chain holding centres on fewer than half the scan
+    lines it spans is no chain (0), as a long-ridge path with fewer ridge pixels is no
+    track (`path_track`)."""
+    pieces = []
+    for label in np.unique(segment[segment >= 0]):
+        at = np.flatnonzero(segment == label)
+        slope, icpt = np.polyfit(at, y[at], 1) if at.size >= 2 else (0.0, float(y[at[0]]))
+        pieces.append((int(at[0]), int(at[-1]), float(slope), float(icpt), at.size))
+    best = 0
+    chain = None  # (first scan line, centres, last piece)
+    for piece in sorted(pieces):
+        first, last, slope, icpt, n = piece
+        if chain is not None:
+            c_first, c_n, (_, p_last, p_slope, p_icpt, _) = chain
+            mid = 0.5 * (p_last + first)
+            if (
+                first - p_last <= min_line
+                and abs((p_slope * mid + p_icpt) - (slope * mid + icpt)) <= jump
+            ):
+                chain = (c_first, c_n + n, piece)
+            else:
+                chain = None
+        if chain is None:
+            chain = (first, n, piece)
+        span = last - chain[0] + 1
+        if chain[1] >= 0.5 * span:
+            best = max(best, span)
+    return best
 
 
 def _min_line(width: float, min_segment: int | None, n_scan: int) -> int:
@@ -423,7 +466,10 @@ def _extract_track(
             small,
             shape[0],
             shape[1],
-            width_px=width,
+            # the line reads wider along a scan line that crosses it at a slant (a 45
+            # degree clipped line: a 20 px plateau for 14 px across it), and the
+            # two-sided response must reach past it
+            width_px=width if ambiguous else width * _slant(angle, orientation),
             integer_input=integer,
             pixel_noise=noise,
             mask_small=mask_small,
@@ -648,10 +694,7 @@ def _extract_track(
             if judged.any():
                 lim = max(0.25, 3.0 * 1.4826 * float(np.median(r[judged])))
                 valid &= ~(near & (count >= 6) & ~(r <= lim))
-    segment, valid = link_segments(
-        y,
-        valid,
-        lines.strength / thr,
+    link = dict(
         max_jump_px=jump,
         max_gap=2,
         min_points=min_pts,
@@ -660,10 +703,21 @@ def _extract_track(
         # stds, and a hysteresis at 16 kept 79 of its 224 centres at 95 deg)
         high=1.0 if track is not None else _HIGH,
         trim=int(math.ceil(2.0 * sigma_s)),
-        # a long-ridge track has shown the line already (`path_track`): each segment on
-        # it is judged alone (the print can cut the line into pieces shorter than this)
-        min_line=min_pts if track is not None else min_line,
     )
+    # a long-ridge track has shown the line already (`path_track`): each segment on
+    # it is judged alone (the print can cut the line into pieces shorter than this)
+    segment, linked = link_segments(
+        y, valid, lines.strength / thr, **link,
+        min_line=min_pts if track is not None else min_line,
+    )  # fmt: skip
+    if track is None and not linked.any() and valid.any():
+        # no one segment spans `min_line`: the pieces of a line cut by the print (a
+        # clipped line refused where its plateau's rims straddle a checker edge) are
+        # the frame's line where they continue one another (`_chain_span`)
+        segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
+        if _chain_span(y, segment, jump, min_line) < min_line:
+            segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+    valid = linked
     saturated &= valid
     y = np.where(valid, y_fit, np.nan)
     x = np.where(valid, x, np.nan)
