@@ -1139,3 +1139,227 @@ def coarse_scan(small, d):
         resp[j] = c
         pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
     return ridge, idx, resp, pos
+
+
+@_jit
+def downsample_u8(img):
+    """`_coarse.downsample` of a uint8 image (two 2 x 2 area reductions as OpenCV's
+    `INTER_AREA` does them on uint8: `(a + b + c + d + 2) >> 2` each, the result as
+    float32) and the image's maximum, from one read of the frame (uint16 sums: at most
+    4 x 255 + 2)."""
+    h, w = img.shape
+    hs, ws = h // 4, w // 4
+    out = np.empty((hs, ws), np.float32)
+    v0 = np.empty(4 * ws, np.uint16)
+    v1 = np.empty(4 * ws, np.uint16)
+    half = np.empty((2, 2 * ws), np.uint16)
+    col_max = np.zeros(w, np.uint8)
+    two = np.uint16(2)
+    for i in range(hs):
+        r0, r1, r2, r3 = img[4 * i], img[4 * i + 1], img[4 * i + 2], img[4 * i + 3]
+        for c in range(4 * ws):  # the sums down the two row pairs
+            v0[c] = np.uint16(r0[c]) + np.uint16(r1[c])
+            v1[c] = np.uint16(r2[c]) + np.uint16(r3[c])
+        for c in range(w):
+            col_max[c] = max(col_max[c], max(max(r0[c], r1[c]), max(r2[c], r3[c])))
+        for j in range(2 * ws):  # the first 2 x 2 reduction
+            half[0, j] = np.uint16(v0[2 * j] + v0[2 * j + 1] + two) >> np.uint16(2)
+            half[1, j] = np.uint16(v1[2 * j] + v1[2 * j + 1] + two) >> np.uint16(2)
+        for j in range(ws):  # the second
+            s = half[0, 2 * j] + half[0, 2 * j + 1] + half[1, 2 * j] + half[1, 2 * j + 1]
+            out[i, j] = np.float32(np.uint16(s + two) >> np.uint16(2))
+    for r in range(4 * hs, h):  # rows past the last whole block: the maximum only
+        for c in range(w):
+            col_max[c] = max(col_max[c], img[r, c])
+    top = np.uint8(0)
+    for c in range(w):
+        top = max(top, col_max[c])
+    return out, top
+
+
+@_jit
+def _pairwise_block(a, lo, n):
+    """`_pairwise_sum` of a block of at most 128 values: eight accumulators (fewer than
+    eight values: one), then the values past the last multiple of 8."""
+    if n < 8:
+        res = _F32(0.0)
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    end = n - n % 8
+    while i < end:
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@_jit
+def _pairwise_sum(a, lo, n):
+    """NumPy's float32 pairwise summation of `a[lo:lo + n]` (`np.sum`'s order: blocks of
+    up to 128 values summed by `_pairwise_block`, longer runs split in two halves at a
+    multiple of 8 and the halves' sums added), so the sum equals `np.sum` to the last
+    bit. (The recursion is unrolled on an explicit stack: Numba's disk cache does not
+    hold recursive functions.)"""
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    # frames: (start, length, stage); stage 0: split, 1: right half pending, 2: combine
+    f_lo = np.empty(64, np.intp)
+    f_n = np.empty(64, np.intp)
+    f_st = np.empty(64, np.intp)
+    vals = np.empty(64, np.float32)
+    f_lo[0], f_n[0], f_st[0] = lo, n, 0
+    sp, vp = 1, 0
+    while sp > 0:
+        k = sp - 1
+        m = f_n[k]
+        if m <= 128:
+            vals[vp] = _pairwise_block(a, f_lo[k], m)
+            vp += 1
+            sp -= 1
+            continue
+        m2 = m // 2
+        m2 -= m2 % 8
+        if f_st[k] == 0:
+            f_st[k] = 1
+            f_lo[sp], f_n[sp], f_st[sp] = f_lo[k], m2, 0
+            sp += 1
+        elif f_st[k] == 1:
+            f_st[k] = 2
+            f_lo[sp], f_n[sp], f_st[sp] = f_lo[k] + m2, m - m2, 0
+            sp += 1
+        else:
+            vals[vp - 2] = vals[vp - 2] + vals[vp - 1]
+            vp -= 1
+            sp -= 1
+    return vals[0]
+
+
+@_jit
+def sum_f32(a):
+    """`np.sum` of a 1-D float32 array, in NumPy's order (`_pairwise_sum`)."""
+    return _F32(0.0) + _pairwise_sum(a, 0, a.size)
+
+
+@_jit
+def ridge_energies(small, d, dd, floor):
+    """`_ridge.scan_direction`'s four energies without a weight: for the two-sided
+    responses along v, u and the two diagonals (offsets `d`, `dd` on the diagonals) of
+    the float32 image `small`, the float32 sum of the positive `response - floor` over
+    the interior, each in the order `np.sum(r[r > 0])` takes it (row-major, NumPy's
+    pairwise summation)."""
+    h, w = small.shape
+    floor = _F32(floor)
+    bufs = np.empty((4, max(h * w, 1)), np.float32)
+    counts = np.zeros(4, np.intp)
+    for i in range(h):
+        for j in range(w):
+            c = small[i, j]
+            if d <= i < h - d:  # along v
+                r = min(c - small[i - d, j], c - small[i + d, j]) - floor
+                if r > 0:
+                    bufs[0, counts[0]] = r
+                    counts[0] += 1
+            if d <= j < w - d:  # along u
+                r = min(c - small[i, j - d], c - small[i, j + d]) - floor
+                if r > 0:
+                    bufs[1, counts[1]] = r
+                    counts[1] += 1
+            if dd <= i < h - dd and dd <= j < w - dd:  # the diagonals
+                r = min(c - small[i - dd, j - dd], c - small[i + dd, j + dd]) - floor
+                if r > 0:
+                    bufs[2, counts[2]] = r
+                    counts[2] += 1
+                r = min(c - small[i - dd, j + dd], c - small[i + dd, j - dd]) - floor
+                if r > 0:
+                    bufs[3, counts[3]] = r
+                    counts[3] += 1
+    out = np.empty(4, np.float32)
+    for k in range(4):
+        out[k] = _F32(0.0) + _pairwise_sum(bufs[k], 0, counts[k])
+    return out
+
+
+@_jit
+def second_diff_ranks_u8(img, n_rows):
+    """`_image.estimate_noise`'s order statistics for a uint8 image: the values of rank
+    `m - 1` and `m` (`m` = half the count; both rank `m` for an odd count) of the absolute
+    second differences along every `H // n_rows`-th row from the middle of the first
+    step, from a histogram (exact)."""
+    h, w = img.shape
+    step = max(h // n_rows, 1)
+    hist = np.zeros(4 * 255 + 1, np.int64)
+    n = 0
+    for r in range(step // 2, h, step):
+        row = img[r]
+        for c in range(w - 2):
+            v = np.int32(row[c]) - 2 * np.int32(row[c + 1]) + np.int32(row[c + 2])
+            hist[abs(v)] += 1
+        n += max(w - 2, 0)
+    m = n // 2
+    lo = hi = -1
+    cum = 0
+    for v in range(hist.size):
+        cum += hist[v]
+        if lo < 0 and cum >= m:
+            lo = v
+        if cum >= m + 1:
+            hi = v
+            break
+    return (hi if n % 2 else lo), hi
+
+
+@_jit
+def block_noise_u8(img, n_rows):
+    """`_image.block_noise`'s mean square for a uint8 image (float32, the value of
+    `np.mean(d * d)` there): the second differences along the rows of 2 x 2 block means
+    (multiples of 1/4, exact in float32) of `n_rows` row pairs, their smallest 90 % in
+    ascending order (from a histogram of 4 d: the sorted values themselves), squared
+    and summed in NumPy's order (`_pairwise_sum`), over their count."""
+    h, w = img.shape
+    step = max((h - 1) // n_rows, 2)
+    nb = w // 2
+    q = _F32(0.25)
+    two = _F32(2.0)
+    hist = np.zeros(4 * 4 * 255 + 1, np.int64)
+    block = np.empty(nb, np.float32)
+    n = 0
+    t = 0
+    for k in range(n_rows):
+        if t >= h - 1:
+            break
+        ra, rb = img[t], img[t + 1]
+        for j in range(nb):
+            p0 = np.float32(ra[2 * j]) + np.float32(rb[2 * j])
+            p1 = np.float32(ra[2 * j + 1]) + np.float32(rb[2 * j + 1])
+            block[j] = q * (p0 + p1)
+        for j in range(nb - 2):
+            d = abs(block[j] - two * block[j + 1] + block[j + 2])
+            hist[np.int64(4 * d)] += 1
+        n += max(nb - 2, 0)
+        t += step
+    keep = max(np.int64(0.9 * n), 1)
+    sq = np.empty(keep, np.float32)
+    i = 0
+    for v in range(hist.size):
+        c = min(hist[v], keep - i)
+        d = _F32(v) * q
+        for _ in range(c):
+            sq[i] = d * d
+            i += 1
+        if i >= keep:
+            break
+    return np.float32(np.float64(_F32(0.0) + _pairwise_sum(sq, 0, keep)) / keep)
