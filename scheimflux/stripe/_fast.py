@@ -378,12 +378,14 @@ def _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop, c
     plain_rows = _plain(ccol[j], n_comp, ROW_LANES)
     col = np.empty(2 * r + 1, np.float32)
     buf = np.empty(2 * r + 1, np.float32)
+    zero = np.intp(0)
     for t in range(2 * r + 1):
         qq = min(max(q - r + t, 0), main_h - 1)
         for b in range(2 * r + 1):
             cc = min(max(ccol[j] - r + b, 0), n_comp - 1)
             buf[b] = np.float32(scan[min(max(coltop[cc] + qq, 0), h - 1), colsrc[cc]])
-        col[t] = _row_value(buf, k0, 0) if plain_rows else _row_fused(buf, k0, 0)
+        # (an intp 0, not the literal: one compiled specialisation of the callees)
+        col[t] = _row_value(buf, k0, zero) if plain_rows else _row_fused(buf, k0, zero)
     return _col_value(col, r, 1, k0, False, not _plain(ccol[j], n_comp, COL_LANES))
 
 
@@ -459,7 +461,8 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
                     rho = min(max(coltop[cc] + row0 + q, 0), h - 1)
                     buf[q * nb + b] = np.float32(scan[rho, colsrc[cc]])
         q_in = sr - kr  # h0's row of h1's first
-        _row_pass(buf, 0, k0, h0, 0, q_in * nb)
+        zero = np.intp(0)  # (not the literal: one compiled specialisation of `_row_pass`)
+        _row_pass(buf, zero, k0, h0, zero, q_in * nb)
         _row_pass3(buf, q_in * nb, k0, k1, k2, h0[q_in * nb :], h1, h2, 0, m1 * nb)
         _row_pass(buf, (q_in + m1) * nb, k0, h0, (q_in + m1) * nb, (m0 - q_in - m1) * nb)
         for i in range(n):
@@ -1208,20 +1211,18 @@ def _pairwise_block(a, lo, n):
 
 
 @_jit
-def _pairwise_sum(a, lo, n):
-    """NumPy's float32 pairwise summation of `a[lo:lo + n]` (`np.sum`'s order: blocks of
-    up to 128 values summed by `_pairwise_block`, longer runs split in two halves at a
-    multiple of 8 and the halves' sums added), so the sum equals `np.sum` to the last
-    bit. (The recursion is unrolled on an explicit stack: Numba's disk cache does not
-    hold recursive functions.)"""
-    if n <= 128:
-        return _pairwise_block(a, lo, n)
+def _pairwise_sum(a, n):
+    """NumPy's float32 pairwise summation of `a[:n]` (`np.sum`'s order: blocks of up to
+    128 values summed by `_pairwise_block`, longer runs split in two halves at a multiple
+    of 8 and the halves' sums added), so the sum equals `np.sum` to the last bit. (The
+    recursion is unrolled on an explicit stack: Numba's disk cache does not hold
+    recursive functions.)"""
     # frames: (start, length, stage); stage 0: split, 1: right half pending, 2: combine
-    f_lo = np.empty(64, np.intp)
+    f_lo = np.zeros(64, np.intp)
     f_n = np.empty(64, np.intp)
-    f_st = np.empty(64, np.intp)
+    f_st = np.zeros(64, np.intp)
     vals = np.empty(64, np.float32)
-    f_lo[0], f_n[0], f_st[0] = lo, n, 0
+    f_n[0] = n
     sp, vp = 1, 0
     while sp > 0:
         k = sp - 1
@@ -1251,7 +1252,25 @@ def _pairwise_sum(a, lo, n):
 @_jit
 def sum_f32(a):
     """`np.sum` of a 1-D float32 array, in NumPy's order (`_pairwise_sum`)."""
-    return _F32(0.0) + _pairwise_sum(a, 0, a.size)
+    return _F32(0.0) + _pairwise_sum(a, a.size)
+
+
+@_jit
+def _ridge_sum(small, di, dj, floor, buf):
+    """The float32 sum of the positive `min(c - small[i - di, j - dj], c - small[i + di,
+    j + dj]) - floor` (`c = small[i, j]`) over the interior where both neighbours exist,
+    in the order `np.sum(r[r > 0])` takes them (row-major, `_pairwise_sum`)."""
+    h, w = small.shape
+    ai, aj = abs(di), abs(dj)
+    n = np.intp(0)  # (not the literal 0: one compiled specialisation of `_pairwise_sum`)
+    for i in range(ai, h - ai):
+        for j in range(aj, w - aj):
+            c = small[i, j]
+            r = min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor
+            if r > 0:
+                buf[n] = r
+                n += 1
+    return _F32(0.0) + _pairwise_sum(buf, n)
 
 
 @_jit
@@ -1259,37 +1278,15 @@ def ridge_energies(small, d, dd, floor):
     """`_ridge.scan_direction`'s four energies without a weight: for the two-sided
     responses along v, u and the two diagonals (offsets `d`, `dd` on the diagonals) of
     the float32 image `small`, the float32 sum of the positive `response - floor` over
-    the interior, each in the order `np.sum(r[r > 0])` takes it (row-major, NumPy's
-    pairwise summation)."""
-    h, w = small.shape
+    the interior, each as `np.sum(r[r > 0])` gives it (`_ridge_sum`)."""
     floor = _F32(floor)
-    bufs = np.empty((4, max(h * w, 1)), np.float32)
-    counts = np.zeros(4, np.intp)
-    for i in range(h):
-        for j in range(w):
-            c = small[i, j]
-            if d <= i < h - d:  # along v
-                r = min(c - small[i - d, j], c - small[i + d, j]) - floor
-                if r > 0:
-                    bufs[0, counts[0]] = r
-                    counts[0] += 1
-            if d <= j < w - d:  # along u
-                r = min(c - small[i, j - d], c - small[i, j + d]) - floor
-                if r > 0:
-                    bufs[1, counts[1]] = r
-                    counts[1] += 1
-            if dd <= i < h - dd and dd <= j < w - dd:  # the diagonals
-                r = min(c - small[i - dd, j - dd], c - small[i + dd, j + dd]) - floor
-                if r > 0:
-                    bufs[2, counts[2]] = r
-                    counts[2] += 1
-                r = min(c - small[i - dd, j + dd], c - small[i + dd, j - dd]) - floor
-                if r > 0:
-                    bufs[3, counts[3]] = r
-                    counts[3] += 1
+    buf = np.empty(max(small.size, 1), np.float32)
     out = np.empty(4, np.float32)
-    for k in range(4):
-        out[k] = _F32(0.0) + _pairwise_sum(bufs[k], 0, counts[k])
+    zero = np.intp(0)  # (not the literal: one compiled specialisation of `_ridge_sum`)
+    out[0] = _ridge_sum(small, d, zero, floor, buf)
+    out[1] = _ridge_sum(small, zero, d, floor, buf)
+    out[2] = _ridge_sum(small, dd, dd, floor, buf)
+    out[3] = _ridge_sum(small, dd, -dd, floor, buf)
     return out
 
 
@@ -1362,4 +1359,4 @@ def block_noise_u8(img, n_rows):
             i += 1
         if i >= keep:
             break
-    return np.float32(np.float64(_F32(0.0) + _pairwise_sum(sq, 0, keep)) / keep)
+    return np.float32(np.float64(_F32(0.0) + _pairwise_sum(sq, keep)) / keep)
