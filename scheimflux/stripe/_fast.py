@@ -1181,113 +1181,39 @@ def downsample_u8(img):
 
 
 @_jit
-def _pairwise_block(a, lo, n):
-    """`_pairwise_sum` of a block of at most 128 values: eight accumulators (fewer than
-    eight values: one), then the values past the last multiple of 8."""
-    if n < 8:
-        res = _F32(0.0)
-        for i in range(n):
-            res += a[lo + i]
-        return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-    i = 8
-    end = n - n % 8
-    while i < end:
-        r0 += a[lo + i]
-        r1 += a[lo + i + 1]
-        r2 += a[lo + i + 2]
-        r3 += a[lo + i + 3]
-        r4 += a[lo + i + 4]
-        r5 += a[lo + i + 5]
-        r6 += a[lo + i + 6]
-        r7 += a[lo + i + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
-    return res
-
-
-@_jit
-def _pairwise_sum(a, n):
-    """NumPy's float32 pairwise summation of `a[:n]` (`np.sum`'s order: blocks of up to
-    128 values summed by `_pairwise_block`, longer runs split in two halves at a multiple
-    of 8 and the halves' sums added), so the sum equals `np.sum` to the last bit. (The
-    recursion is unrolled on an explicit stack: Numba's disk cache does not hold
-    recursive functions.)"""
-    # frames: (start, length, stage); stage 0: split, 1: right half pending, 2: combine
-    f_lo = np.zeros(64, np.intp)
-    f_n = np.empty(64, np.intp)
-    f_st = np.zeros(64, np.intp)
-    vals = np.empty(64, np.float32)
-    f_n[0] = n
-    sp, vp = 1, 0
-    while sp > 0:
-        k = sp - 1
-        m = f_n[k]
-        if m <= 128:
-            vals[vp] = _pairwise_block(a, f_lo[k], m)
-            vp += 1
-            sp -= 1
-            continue
-        m2 = m // 2
-        m2 -= m2 % 8
-        if f_st[k] == 0:
-            f_st[k] = 1
-            f_lo[sp], f_n[sp], f_st[sp] = f_lo[k], m2, 0
-            sp += 1
-        elif f_st[k] == 1:
-            f_st[k] = 2
-            f_lo[sp], f_n[sp], f_st[sp] = f_lo[k] + m2, m - m2, 0
-            sp += 1
-        else:
-            vals[vp - 2] = vals[vp - 2] + vals[vp - 1]
-            vp -= 1
-            sp -= 1
-    return vals[0]
-
-
-@_jit
-def sum_f32(a):
-    """`np.sum` of a 1-D float32 array, in NumPy's order (`_pairwise_sum`)."""
-    return _F32(0.0) + _pairwise_sum(a, a.size)
-
-
-@_jit
-def _ridge_sum(small, di, dj, floor, buf):
-    """The float32 sum of the positive `min(c - small[i - di, j - dj], c - small[i + di,
-    j + dj]) - floor` (`c = small[i, j]`) over the interior where both neighbours exist,
-    in the order `np.sum(r[r > 0])` takes them (row-major, `_pairwise_sum`)."""
+def _ridge_positive(small, di, dj, floor, out):
+    """The positive `min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor`
+    (`c = small[i, j]`) over the interior where both neighbours exist, written to `out`
+    in row-major order (that of `r[r > 0]`); returns their number."""
     h, w = small.shape
     ai, aj = abs(di), abs(dj)
-    n = np.intp(0)  # (not the literal 0: one compiled specialisation of `_pairwise_sum`)
+    n = 0
     for i in range(ai, h - ai):
         for j in range(aj, w - aj):
             c = small[i, j]
             r = min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor
             if r > 0:
-                buf[n] = r
+                out[n] = r
                 n += 1
-    return _F32(0.0) + _pairwise_sum(buf, n)
+    return n
 
 
 @_jit
-def ridge_energies(small, d, dd, floor):
-    """`_ridge.scan_direction`'s four energies without a weight: for the two-sided
+def ridge_positive(small, d, dd, floor):
+    """`_ridge.scan_direction`'s positive responses without a weight: for the two-sided
     responses along v, u and the two diagonals (offsets `d`, `dd` on the diagonals) of
-    the float32 image `small`, the float32 sum of the positive `response - floor` over
-    the interior, each as `np.sum(r[r > 0])` gives it (`_ridge_sum`)."""
+    the float32 image `small`, `r[r > 0]` of `r = response - floor` on the interior, in
+    row `k` of the result, its first `count[k]` entries (`_ridge_positive`). (NumPy sums
+    them: `np.sum`'s pairwise order is then its own.)"""
     floor = _F32(floor)
-    buf = np.empty(max(small.size, 1), np.float32)
-    out = np.empty(4, np.float32)
-    zero = np.intp(0)  # (not the literal: one compiled specialisation of `_ridge_sum`)
-    out[0] = _ridge_sum(small, d, zero, floor, buf)
-    out[1] = _ridge_sum(small, zero, d, floor, buf)
-    out[2] = _ridge_sum(small, dd, dd, floor, buf)
-    out[3] = _ridge_sum(small, dd, -dd, floor, buf)
-    return out
+    out = np.empty((4, max(small.size, 1)), np.float32)
+    count = np.empty(4, np.intp)
+    zero = np.intp(0)  # (not the literal: one compiled specialisation of the helper)
+    count[0] = _ridge_positive(small, d, zero, floor, out[0])
+    count[1] = _ridge_positive(small, zero, d, floor, out[1])
+    count[2] = _ridge_positive(small, dd, dd, floor, out[2])
+    count[3] = _ridge_positive(small, dd, -dd, floor, out[3])
+    return out, count
 
 
 @_jit
@@ -1321,11 +1247,10 @@ def second_diff_ranks_u8(img, n_rows):
 
 @_jit
 def block_noise_u8(img, n_rows):
-    """`_image.block_noise`'s mean square for a uint8 image (float32, the value of
-    `np.mean(d * d)` there): the second differences along the rows of 2 x 2 block means
-    (multiples of 1/4, exact in float32) of `n_rows` row pairs, their smallest 90 % in
-    ascending order (from a histogram of 4 d: the sorted values themselves), squared
-    and summed in NumPy's order (`_pairwise_sum`), over their count."""
+    """`_image.block_noise`'s sorted second differences for a uint8 image: those along
+    the rows of 2 x 2 block means (multiples of 1/4, exact in float32) of `n_rows` row
+    pairs, their smallest 90 % in ascending order (from a histogram of 4 d: the sorted
+    values themselves), float32. (NumPy takes their mean square, in its own order.)"""
     h, w = img.shape
     step = max((h - 1) // n_rows, 2)
     nb = w // 2
@@ -1349,14 +1274,13 @@ def block_noise_u8(img, n_rows):
         n += max(nb - 2, 0)
         t += step
     keep = max(np.int64(0.9 * n), 1)
-    sq = np.empty(keep, np.float32)
+    out = np.empty(keep, np.float32)
     i = 0
     for v in range(hist.size):
         c = min(hist[v], keep - i)
-        d = _F32(v) * q
         for _ in range(c):
-            sq[i] = d * d
+            out[i] = _F32(v) * q
             i += 1
         if i >= keep:
             break
-    return np.float32(np.float64(_F32(0.0) + _pairwise_sum(sq, keep)) / keep)
+    return out

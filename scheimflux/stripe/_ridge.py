@@ -105,8 +105,10 @@ def scan_direction(
         )
 
     if _fast.enabled and weight is None and small.dtype == np.float32:
-        # the four sums below in one compiled pass (the same float32 values and order)
-        energies = _fast.ridge_energies(np.ascontiguousarray(small), d, dd, floor)
+        # the positive responses below from one compiled call (the same float32 values
+        # in the same order: the same sums)
+        pos, count = _fast.ridge_positive(np.ascontiguousarray(small), d, dd, floor)
+        energies = [np.sum(pos[k, : count[k]]) for k in range(4)]
     else:
         energies = []
         for resp, where in interior():
