@@ -1181,38 +1181,32 @@ def downsample_u8(img):
 
 
 @_jit
-def _ridge_positive(small, di, dj, floor, out):
-    """The positive `min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor`
-    (`c = small[i, j]`) over the interior where both neighbours exist, written to `out`
-    in row-major order (that of `r[r > 0]`); returns their number."""
-    h, w = small.shape
-    ai, aj = abs(di), abs(dj)
-    n = 0
-    for i in range(ai, h - ai):
-        for j in range(aj, w - aj):
-            c = small[i, j]
-            r = min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor
-            if r > 0:
-                out[n] = r
-                n += 1
-    return n
-
-
-@_jit
 def ridge_positive(small, d, dd, floor):
     """`_ridge.scan_direction`'s positive responses without a weight: for the two-sided
-    responses along v, u and the two diagonals (offsets `d`, `dd` on the diagonals) of
-    the float32 image `small`, `r[r > 0]` of `r = response - floor` on the interior, in
-    row `k` of the result, its first `count[k]` entries (`_ridge_positive`). (NumPy sums
-    them: `np.sum`'s pairwise order is then its own.)"""
+    responses `min(c - small[i - di, j - dj], c - small[i + di, j + dj])` (`c =
+    small[i, j]`) along v, u and the two diagonals (offsets `d`, and `dd` on the
+    diagonals) of the float32 image `small`, `r[r > 0]` of `r = response - floor` over
+    the interior where both neighbours exist, in row-major order: row `k` of the
+    result, its first `count[k]` entries. (NumPy sums them: `np.sum`'s pairwise order
+    stays its own.)"""
+    h, w = small.shape
     floor = _F32(floor)
-    out = np.empty((4, max(small.size, 1)), np.float32)
-    count = np.empty(4, np.intp)
-    zero = np.intp(0)  # (not the literal: one compiled specialisation of the helper)
-    count[0] = _ridge_positive(small, d, zero, floor, out[0])
-    count[1] = _ridge_positive(small, zero, d, floor, out[1])
-    count[2] = _ridge_positive(small, dd, dd, floor, out[2])
-    count[3] = _ridge_positive(small, dd, -dd, floor, out[3])
+    out = np.empty((4, max(h * w, 1)), np.float32)
+    count = np.zeros(4, np.intp)
+    for k in range(4):
+        di = d if k == 0 else (0 if k == 1 else dd)
+        dj = 0 if k == 0 else (d if k == 1 else (dd if k == 2 else -dd))
+        ai, aj = abs(di), abs(dj)
+        row = out[k]
+        n = 0
+        for i in range(ai, h - ai):
+            for j in range(aj, w - aj):
+                c = small[i, j]
+                r = min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor
+                if r > 0:
+                    row[n] = r
+                    n += 1
+        count[k] = n
     return out, count
 
 
