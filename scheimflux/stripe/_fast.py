@@ -1193,18 +1193,26 @@ def ridge_positive(small, d, dd, floor):
     floor = _F32(floor)
     out = np.empty((4, max(h * w, 1)), np.float32)
     count = np.zeros(4, np.intp)
+    resp = np.empty(w, np.float32)
     for k in range(4):
         di = d if k == 0 else (0 if k == 1 else dd)
         dj = 0 if k == 0 else (d if k == 1 else (dd if k == 2 else -dd))
         ai, aj = abs(di), abs(dj)
-        row = out[k]
+        dst = out[k]
         n = 0
+        m = w - 2 * aj  # interior columns aj .. w - aj
         for i in range(ai, h - ai):
-            for j in range(aj, w - aj):
-                c = small[i, j]
-                r = min(c - small[i - di, j - dj], c - small[i + di, j + dj]) - floor
-                if r > 0:
-                    row[n] = r
+            # slices of the row and its two neighbours, aligned: one vectorised loop
+            up = small[i - di, aj - dj : aj - dj + m]
+            mid = small[i, aj : aj + m]
+            down = small[i + di, aj + dj : aj + dj + m]
+            for j in range(m):
+                a = mid[j] - up[j]
+                b = mid[j] - down[j]
+                resp[j] = (a if a < b else b) - floor
+            for j in range(m):
+                if resp[j] > 0:
+                    dst[n] = resp[j]
                     n += 1
         count[k] = n
     return out, count
