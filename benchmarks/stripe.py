@@ -177,9 +177,14 @@ def speed_table(n_frames: int) -> None:
         print(f"{name:<58} {fps:>9.1f} {fps / base[0]:>6.1f}x {cps:>10.1f} {cps / base[1]:>6.1f}x")
 
 
+# (the names `_extract` calls; a version without one, or not calling it, skips its row:
+# `_frame_noise` and `_block_noise` are the noise estimates' compiled paths for uint8,
+# which call `estimate_noise` and `block_noise` for other types: time uint8 frames only)
 _STAGES = (
     "downsample",
     "estimate_noise",
+    "_frame_noise",
+    "_block_noise",
     "scan_direction",
     "coarse_track",
     "steger_band",
@@ -210,8 +215,9 @@ def stage_table(n_frames: int) -> None:
     import scheimflux.stripe._extract as ex
 
     frames = _speed_frames(n_frames)
-    spent = dict.fromkeys(_STAGES, 0.0)
-    original = {name: getattr(ex, name) for name in _STAGES}
+    stages = [name for name in _STAGES if hasattr(ex, name)]
+    spent = dict.fromkeys(stages, 0.0)
+    original = {name: getattr(ex, name) for name in stages}
 
     def timed(name):
         def call(*args, **kwargs):
@@ -228,21 +234,22 @@ def stage_table(n_frames: int) -> None:
     try:
         for f in frames[:2]:
             extract_stripe(f, width_px=5)
-        for name in _STAGES:
+        for name in stages:
             setattr(ex, name, timed(name))
         t0 = time.process_time()
         for f in frames:
             extract_stripe(f, width_px=5)
         total = time.process_time() - t0
     finally:
-        for name in _STAGES:
+        for name in stages:
             setattr(ex, name, original[name])
         cv2.setNumThreads(previous)
     n = len(frames)
     print(f"\nstages of extract_stripe, 1600 x 1200 plain frames ({n}; CPU ms per frame)")
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
-    for name in _STAGES:
-        print(f"{name:<28} {1e3 * spent[name] / n:>7.3f} {100 * spent[name] / total:>5.1f}%")
+    for name in stages:
+        if spent[name] > 0:
+            print(f"{name:<28} {1e3 * spent[name] / n:>7.3f} {100 * spent[name] / total:>5.1f}%")
     rest = total - sum(spent.values())
     print(f"{'rest (checks, assembly)':<28} {1e3 * rest / n:>7.3f} {100 * rest / total:>5.1f}%")
     print(f"{'total':<28} {1e3 * total / n:>7.3f} ({n / total:.0f} frames per CPU-s)")

@@ -627,3 +627,97 @@ def test_compiled_coarse_track(monkeypatch):
             np.testing.assert_array_equal(fast.support, ref.support)
             n_found += ref.found
     assert n_found >= 12  # tracks were found, not only empty results compared
+
+
+def _u8_frames():
+    """uint8 frames for the frame-level kernels: rendered stripes (whole and cropped to
+    odd sizes, so that rows and columns are left past the last 4 x 4 block) and noise of
+    several levels (clipped at 0 and 255)."""
+    rng = np.random.default_rng(8)
+    img, _ = render_stripe((300, 400), CENTRES["curved"], width_px=5, peak=0.5, seed=2)
+    frames = [img, img[:297, :399], img[:33, :61], img[:8, :8], img.T.copy()]
+    for shape, scale in (((37, 50), 1), ((64, 90), 4), ((41, 67), 60), ((9, 300), 150)):
+        frames.append(np.clip(rng.normal(120, scale, shape), 0, 255).astype(np.uint8))
+    assert all(f.dtype == np.uint8 for f in frames)
+    return frames
+
+
+@needs_numba
+def test_compiled_downsample_equals_numpy_blocks():
+    # OpenCV's uint8 INTER_AREA halving is the rounded block mean (a + b + c + d + 2) >> 2;
+    # `downsample` applies it twice. Integers throughout: the same values exactly.
+    from scheimflux.stripe import _coarse
+
+    for img in _u8_frames():
+        h, w = img.shape[0] // 4 * 4, img.shape[1] // 4 * 4
+        x = img[:h, :w].astype(np.int64)
+        for _ in range(2):
+            x = (x[0::2, 0::2] + x[0::2, 1::2] + x[1::2, 0::2] + x[1::2, 1::2] + 2) >> 2
+        small, top = _fast.downsample_u8(img)
+        assert small.dtype == np.float32
+        np.testing.assert_array_equal(small, x.astype(np.float32))
+        assert top == img.max()
+        got = _coarse.downsample(img, with_max=True)
+        np.testing.assert_array_equal(got[0], small)
+        assert got[1] == float(img.max())
+
+
+@needs_numba
+def test_compiled_ridge_responses_equal_numpy(monkeypatch):
+    # the scan direction's positive two-sided responses less the floor, along v, u and
+    # the two diagonals, in NumPy's order (the energies are their sums)
+    from scheimflux.stripe import _coarse, _ridge
+
+    smalls = [_coarse.downsample(f) for f in _u8_frames()]
+    rng = np.random.default_rng(10)
+    smalls += [(rng.random((40, 57)) * 30).astype(np.float32)]
+    for small in smalls:
+        for d, dd, floor in ((2, 1, 0.0), (2, 1, 1.7), (3, 2, 0.4), (5, 4, 2.0)):
+            c = small[d:-d]
+            resp = [np.minimum(c - small[: -2 * d], c - small[2 * d :])]
+            c = small[:, d:-d]
+            resp.append(np.minimum(c - small[:, : -2 * d], c - small[:, 2 * d :]))
+            c = small[dd:-dd, dd:-dd]
+            up_l, up_r = small[: -2 * dd, : -2 * dd], small[: -2 * dd, 2 * dd :]
+            dn_l, dn_r = small[2 * dd :, : -2 * dd], small[2 * dd :, 2 * dd :]
+            resp.append(np.minimum(c - up_l, c - dn_r))
+            resp.append(np.minimum(c - up_r, c - dn_l))
+            pos, count = _fast.ridge_positive(small, d, dd, floor)
+            for k, r in enumerate(resp):
+                r = r - np.float32(floor)
+                np.testing.assert_array_equal(pos[k, : count[k]], r[r > 0])
+        fast, ref = _both_paths(monkeypatch, lambda: _ridge.scan_direction(small, 3, None, 1.0))
+        assert fast == ref
+
+
+@needs_numba
+def test_compiled_noise_estimates_equal_numpy():
+    # the frame's noise: the median of the absolute second differences along 8 rows,
+    # as a Gaussian std (exact: a median of integers); the block noise: the RMS of the
+    # smallest 90 % of the second differences of 2 x 2 block means along 16 row pairs.
+    # Against a float64 computation: the float32 squares summed pairwise (as
+    # `block_noise` does, which it equals exactly) carry ~log2(k) roundings of 6e-8
+    # relative each, < 2e-6 for k < 2^14 values (the RMS: half of that).
+    from scheimflux.stripe import _extract
+    from scheimflux.stripe._image import block_noise, estimate_noise
+
+    for img in _u8_frames():
+        h, w = img.shape
+        step = max(h // 8, 1)
+        rows = img[step // 2 :: step].astype(np.int64)
+        d = np.abs(rows[:, :-2] - 2 * rows[:, 1:-1] + rows[:, 2:])
+        want = max(1.4826 * float(np.median(d)) / np.sqrt(6.0), 0.3)
+        assert _extract._frame_noise(img) == want == estimate_noise(img)
+        if min(h, w) < 6:
+            continue
+        step = max((h - 1) // 16, 2)
+        top = np.arange(0, h - 1, step)[:16]
+        pair = img[top].astype(np.float64) + img[top + 1]
+        w2 = w // 2 * 2
+        block = 0.25 * (pair[:, 0:w2:2] + pair[:, 1:w2:2])
+        dd = np.sort(np.abs(block[:, :-2] - 2 * block[:, 1:-1] + block[:, 2:]).ravel())
+        dd = dd[: max(int(0.9 * dd.size), 1)]
+        want = 2.0 * 1.267 * np.sqrt(np.mean(dd * dd)) / np.sqrt(6.0)
+        got = _extract._block_noise(img)
+        assert got == block_noise(img)
+        np.testing.assert_allclose(got, want, rtol=1e-6)

@@ -22,15 +22,24 @@ FACTOR = 4
 _TRACK_WINDOW = 15
 
 
-def downsample(image: np.ndarray) -> np.ndarray:
-    """Average 4 x 4 blocks (two fast 2 x 2 area reductions), float32, shape (H//4, W//4)."""
+def downsample(image: np.ndarray, *, with_max: bool = False):
+    """Average 4 x 4 blocks (two fast 2 x 2 area reductions), float32, shape (H//4, W//4);
+    with `with_max`, also the image's maximum (a float; for a uint8 image from the same
+    compiled pass, `_fast.downsample_u8`)."""
+    if (
+        _fast.enabled and image.dtype == np.uint8 and image.ndim == 2
+        and min(image.shape) >= FACTOR and FACTOR == 4
+    ):  # fmt: skip
+        small, top = _fast.downsample_u8(np.ascontiguousarray(image))
+        return (small, float(top)) if with_max else small
     h, w = (image.shape[0] // FACTOR) * FACTOR, (image.shape[1] // FACTOR) * FACTOR
     img = image[:h, :w]
     if img.dtype == np.float64:
         img = img.astype(np.float32)
     half = cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
     quarter = cv2.resize(half, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
-    return quarter.astype(np.float32, copy=False)
+    quarter = quarter.astype(np.float32, copy=False)
+    return (quarter, float(image.max())) if with_max else quarter
 
 
 def dominant_scan(small: np.ndarray) -> str:

@@ -378,12 +378,14 @@ def _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop, c
     plain_rows = _plain(ccol[j], n_comp, ROW_LANES)
     col = np.empty(2 * r + 1, np.float32)
     buf = np.empty(2 * r + 1, np.float32)
+    zero = np.intp(0)
     for t in range(2 * r + 1):
         qq = min(max(q - r + t, 0), main_h - 1)
         for b in range(2 * r + 1):
             cc = min(max(ccol[j] - r + b, 0), n_comp - 1)
             buf[b] = np.float32(scan[min(max(coltop[cc] + qq, 0), h - 1), colsrc[cc]])
-        col[t] = _row_value(buf, k0, 0) if plain_rows else _row_fused(buf, k0, 0)
+        # (an intp 0, not the literal: one compiled specialisation of the callees)
+        col[t] = _row_value(buf, k0, zero) if plain_rows else _row_fused(buf, k0, zero)
     return _col_value(col, r, 1, k0, False, not _plain(ccol[j], n_comp, COL_LANES))
 
 
@@ -459,7 +461,8 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
                     rho = min(max(coltop[cc] + row0 + q, 0), h - 1)
                     buf[q * nb + b] = np.float32(scan[rho, colsrc[cc]])
         q_in = sr - kr  # h0's row of h1's first
-        _row_pass(buf, 0, k0, h0, 0, q_in * nb)
+        zero = np.intp(0)  # (not the literal: one compiled specialisation of `_row_pass`)
+        _row_pass(buf, zero, k0, h0, zero, q_in * nb)
         _row_pass3(buf, q_in * nb, k0, k1, k2, h0[q_in * nb :], h1, h2, 0, m1 * nb)
         _row_pass(buf, (q_in + m1) * nb, k0, h0, (q_in + m1) * nb, (m0 - q_in - m1) * nb)
         for i in range(n):
@@ -1139,3 +1142,147 @@ def coarse_scan(small, d):
         resp[j] = c
         pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
     return ridge, idx, resp, pos
+
+
+@_jit
+def downsample_u8(img):
+    """`_coarse.downsample` of a uint8 image (two 2 x 2 area reductions as OpenCV's
+    `INTER_AREA` does them on uint8: `(a + b + c + d + 2) >> 2` each, the result as
+    float32) and the image's maximum, from one read of the frame (uint16 sums: at most
+    4 x 255 + 2)."""
+    h, w = img.shape
+    hs, ws = h // 4, w // 4
+    out = np.empty((hs, ws), np.float32)
+    v0 = np.empty(4 * ws, np.uint16)
+    v1 = np.empty(4 * ws, np.uint16)
+    half = np.empty((2, 2 * ws), np.uint16)
+    col_max = np.zeros(w, np.uint8)
+    two = np.uint16(2)
+    for i in range(hs):
+        r0, r1, r2, r3 = img[4 * i], img[4 * i + 1], img[4 * i + 2], img[4 * i + 3]
+        for c in range(4 * ws):  # the sums down the two row pairs
+            v0[c] = np.uint16(r0[c]) + np.uint16(r1[c])
+            v1[c] = np.uint16(r2[c]) + np.uint16(r3[c])
+        for c in range(w):
+            col_max[c] = max(col_max[c], max(max(r0[c], r1[c]), max(r2[c], r3[c])))
+        for j in range(2 * ws):  # the first 2 x 2 reduction
+            half[0, j] = np.uint16(v0[2 * j] + v0[2 * j + 1] + two) >> np.uint16(2)
+            half[1, j] = np.uint16(v1[2 * j] + v1[2 * j + 1] + two) >> np.uint16(2)
+        for j in range(ws):  # the second
+            s = half[0, 2 * j] + half[0, 2 * j + 1] + half[1, 2 * j] + half[1, 2 * j + 1]
+            out[i, j] = np.float32(np.uint16(s + two) >> np.uint16(2))
+    for r in range(4 * hs, h):  # rows past the last whole block: the maximum only
+        for c in range(w):
+            col_max[c] = max(col_max[c], img[r, c])
+    top = np.uint8(0)
+    for c in range(w):
+        top = max(top, col_max[c])
+    return out, top
+
+
+@_jit
+def ridge_positive(small, d, dd, floor):
+    """`_ridge.scan_direction`'s positive responses without a weight: for the two-sided
+    responses `min(c - small[i - di, j - dj], c - small[i + di, j + dj])` (`c =
+    small[i, j]`) along v, u and the two diagonals (offsets `d`, and `dd` on the
+    diagonals) of the float32 image `small`, `r[r > 0]` of `r = response - floor` over
+    the interior where both neighbours exist, in row-major order: row `k` of the
+    result, its first `count[k]` entries. (NumPy sums them: `np.sum`'s pairwise order
+    stays its own.)"""
+    h, w = small.shape
+    floor = _F32(floor)
+    out = np.empty((4, max(h * w, 1)), np.float32)
+    count = np.zeros(4, np.intp)
+    resp = np.empty(w, np.float32)
+    for k in range(4):
+        di = d if k == 0 else (0 if k == 1 else dd)
+        dj = 0 if k == 0 else (d if k == 1 else (dd if k == 2 else -dd))
+        ai, aj = abs(di), abs(dj)
+        dst = out[k]
+        n = 0
+        m = w - 2 * aj  # interior columns aj .. w - aj
+        for i in range(ai, h - ai):
+            # slices of the row and its two neighbours, aligned: one vectorised loop
+            up = small[i - di, aj - dj : aj - dj + m]
+            mid = small[i, aj : aj + m]
+            down = small[i + di, aj + dj : aj + dj + m]
+            for j in range(m):
+                a = mid[j] - up[j]
+                b = mid[j] - down[j]
+                resp[j] = (a if a < b else b) - floor
+            for j in range(m):
+                if resp[j] > 0:
+                    dst[n] = resp[j]
+                    n += 1
+        count[k] = n
+    return out, count
+
+
+@_jit
+def second_diff_ranks_u8(img, n_rows):
+    """`_image.estimate_noise`'s order statistics for a uint8 image: the values of rank
+    `m - 1` and `m` (`m` = half the count; both rank `m` for an odd count) of the absolute
+    second differences along every `H // n_rows`-th row from the middle of the first
+    step, from a histogram (exact)."""
+    h, w = img.shape
+    step = max(h // n_rows, 1)
+    hist = np.zeros(4 * 255 + 1, np.int64)
+    n = 0
+    for r in range(step // 2, h, step):
+        row = img[r]
+        for c in range(w - 2):
+            v = np.int32(row[c]) - 2 * np.int32(row[c + 1]) + np.int32(row[c + 2])
+            hist[abs(v)] += 1
+        n += max(w - 2, 0)
+    m = n // 2
+    lo = hi = -1
+    cum = 0
+    for v in range(hist.size):
+        cum += hist[v]
+        if lo < 0 and cum >= m:
+            lo = v
+        if cum >= m + 1:
+            hi = v
+            break
+    return (hi if n % 2 else lo), hi
+
+
+@_jit
+def block_noise_u8(img, n_rows):
+    """`_image.block_noise`'s sorted second differences for a uint8 image: those along
+    the rows of 2 x 2 block means (multiples of 1/4, exact in float32) of `n_rows` row
+    pairs, their smallest 90 % in ascending order (from a histogram of 4 d: the sorted
+    values themselves), float32. (NumPy takes their mean square, in its own order.)"""
+    h, w = img.shape
+    step = max((h - 1) // n_rows, 2)
+    nb = w // 2
+    q = _F32(0.25)
+    two = _F32(2.0)
+    hist = np.zeros(4 * 4 * 255 + 1, np.int64)
+    block = np.empty(nb, np.float32)
+    n = 0
+    t = 0
+    for k in range(n_rows):
+        if t >= h - 1:
+            break
+        ra, rb = img[t], img[t + 1]
+        for j in range(nb):
+            p0 = np.float32(ra[2 * j]) + np.float32(rb[2 * j])
+            p1 = np.float32(ra[2 * j + 1]) + np.float32(rb[2 * j + 1])
+            block[j] = q * (p0 + p1)
+        for j in range(nb - 2):
+            d = abs(block[j] - two * block[j + 1] + block[j + 2])
+            hist[np.int64(4 * d)] += 1
+        n += max(nb - 2, 0)
+        t += step
+    keep = max(np.int64(0.9 * n), 1)
+    out = np.empty(keep, np.float32)
+    i = 0
+    for v in range(hist.size):
+        c = min(hist[v], keep - i)
+        for _ in range(c):
+            out[i] = _F32(v) * q
+            i += 1
+        if i >= keep:
+            break
+    return out

@@ -23,10 +23,20 @@ import math
 import cv2
 import numpy as np
 
+from . import _fast
+
 # Coherence of the ridge-normal tensor below which the scan direction is ambiguous. A
 # single straight line gives about 0.5 (the response falls off slowly with the angle),
 # a 45-degree line 0.3-0.4; two crossing lines or isotropic blobs well below 0.15.
 AMBIGUOUS_COHERENCE = 0.12
+# The unit directions (u, v) of the four two-sided responses of `scan_direction`: along
+# v, along u and the two diagonals.
+_DIRECTIONS = (
+    (0.0, 1.0),
+    (1.0, 0.0),
+    (math.sqrt(0.5), math.sqrt(0.5)),
+    (math.sqrt(0.5), -math.sqrt(0.5)),
+)
 
 
 def ridge_offset(width_px: float, factor: int = 4) -> int:
@@ -77,34 +87,38 @@ def scan_direction(
         d = max(2, int(round(d / 2)))
         floor = floor / 2.0  # block-mean noise halves
     dd = max(1, int(round(d / math.sqrt(2.0))))
+
     # Interior responses only (outside it `ridge_response` gives 0, which `> floor`
     # never passes): the same positive parts, in the same order, as the full arrays.
-    c, cd = small[d:-d], small[dd:-dd, dd:-dd]
-    interior = (
-        (np.minimum(c - small[: -2 * d], c - small[2 * d :]), (0.0, 1.0), np.s_[d:-d]),
-        (
-            np.minimum(small[:, d:-d] - small[:, : -2 * d], small[:, d:-d] - small[:, 2 * d :]),
-            (1.0, 0.0),
-            np.s_[:, d:-d],
-        ),
-        (
+    def interior():  # the responses on the interior, where each is defined
+        c, cd = small[d:-d], small[dd:-dd, dd:-dd]
+        yield np.minimum(c - small[: -2 * d], c - small[2 * d :]), np.s_[d:-d]
+        c = small[:, d:-d]
+        yield np.minimum(c - small[:, : -2 * d], c - small[:, 2 * d :]), np.s_[:, d:-d]
+        yield (
             np.minimum(cd - small[: -2 * dd, : -2 * dd], cd - small[2 * dd :, 2 * dd :]),
-            (math.sqrt(0.5), math.sqrt(0.5)),
             np.s_[dd:-dd, dd:-dd],
-        ),
-        (
+        )
+        yield (
             np.minimum(cd - small[: -2 * dd, 2 * dd :], cd - small[2 * dd :, : -2 * dd]),
-            (math.sqrt(0.5), -math.sqrt(0.5)),
             np.s_[dd:-dd, dd:-dd],
-        ),
-    )
+        )
+
+    if _fast.enabled and weight is None and small.dtype == np.float32:
+        # the positive responses below from one compiled call (the same float32 values
+        # in the same order: the same sums)
+        pos, count = _fast.ridge_positive(np.ascontiguousarray(small), d, dd, floor)
+        energies = [np.sum(pos[k, : count[k]]) for k in range(4)]
+    else:
+        energies = []
+        for resp, where in interior():
+            r = resp - floor
+            if weight is not None:
+                r = r * weight[where]
+            energies.append(np.sum(r[r > 0]))
     T = np.zeros((2, 2))
-    for resp, (eu, ev), where in interior:
-        r = resp - floor
-        if weight is not None:
-            r = r * weight[where]
-        e = float(np.sum(r[r > 0]))
-        T += e * np.array([[eu * eu, eu * ev], [eu * ev, ev * ev]])
+    for e, (eu, ev) in zip(energies, _DIRECTIONS):
+        T += float(e) * np.array([[eu * eu, eu * ev], [eu * ev, ev * ev]])
     a, b, c = float(T[0, 0]), float(T[0, 1]), float(T[1, 1])
     if not a + c > 0:
         return "vertical-scan", 90.0, 0.0
