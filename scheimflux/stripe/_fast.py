@@ -508,12 +508,14 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
 
 
 @_jit_inline
-def _smooth_read(q, j, strip, strip_top, main_top, main_h, r):
-    """`_smooth_at` where `strip` holds the value (NaN elsewhere)."""
+def _smoothed(q, j, strip, strip_top, main_top, main_h, r, scan, colsrc, coltop, ccol, k0):
+    """`_smooth_at`, with its common case (the value held in `strip`) inlined."""
     p = main_top[j] + q - strip_top[j]
     if q >= r and q < main_h - r and p >= 0 and p < strip.shape[0]:
-        return strip[p, j]
-    return np.float32(np.nan)
+        v = strip[p, j]
+        if not np.isnan(v):
+            return v
+    return _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop, ccol, k0)
 
 
 @_jit
@@ -586,14 +588,10 @@ def band_lines(
         if q0 < 0 or q1 < 0 or q0 >= main_h or q1 >= main_h:
             return (np.empty(0), np.empty(0), np.empty(0), found, np.empty(0), np.empty(0),
                     np.empty(0), False)  # fmt: skip
-        b0 = _smooth_read(q0, j, strip, strip_top, main_top, main_h, r_k)
-        if np.isnan(b0):
-            b0 = _smooth_at(q0, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
-                            ccol, k0)  # fmt: skip
-        b1 = _smooth_read(q1, j, strip, strip_top, main_top, main_h, r_k)
-        if np.isnan(b1):
-            b1 = _smooth_at(q1, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
-                            ccol, k0)  # fmt: skip
+        b0 = _smoothed(q0, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
+                       coltop, ccol, k0)  # fmt: skip
+        b1 = _smoothed(q1, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
+                       coltop, ccol, k0)  # fmt: skip
         bg[j] = half * (b0 + b1)
         grad_y[j] = (b1 - b0) / two_off
     grad_x = np.zeros(n, np.float32)
@@ -660,14 +658,10 @@ def band_lines(
             li = np.intp(lo_f)
             c0 = min(max(li - main_top[j], 0), main_h - 1)
             c1 = min(max(li + 1 - main_top[j], 0), main_h - 1)
-            v0 = _smooth_read(c0, j, strip, strip_top, main_top, main_h, r_k)
-            if np.isnan(v0):
-                v0 = _smooth_at(c0, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
-                                ccol, k0)  # fmt: skip
-            v1 = _smooth_read(c1, j, strip, strip_top, main_top, main_h, r_k)
-            if np.isnan(v1):
-                v1 = _smooth_at(c1, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
-                                ccol, k0)  # fmt: skip
+            v0 = _smoothed(c0, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
+                           coltop, ccol, k0)  # fmt: skip
+            v1 = _smoothed(c1, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
+                           coltop, ccol, k0)  # fmt: skip
             sampled[e] = (1 - f) * v0 + f * v1
         centre, plus, minus = sampled[0], sampled[1], sampled[2]
         hgt = centre - bg[j]
