@@ -8,7 +8,7 @@ session's compilation cache, shared with the kernel through `SCHEIMFLUX_CACHE_DI
 programs other tests compiled. 176 s in all from an empty compilation cache at load ~2 on
 2 cores (01 5 s, 02 10 s, 03 51 s, 04 69 s, 05 39 s; docs/metrology.md, "Notebooks"); in
 a fresh-clone CI run on 2026-12-03 (load ~3) 03 128 s, 04 181 s, 05 79 s, 02 25 s, so 04
-runs with `-m slow` and the default suite runs the other four.
+and 05 run with `-m slow` and the default suite runs the other three.
 """
 
 import glob
@@ -63,9 +63,12 @@ def test_notebook_outputs_are_stripped():
                 assert cell.get("execution_count") is None, path
 
 
-# The table-3 step-gauge notebook is the longest (~3 min of its own compilation in CI):
-# it runs with `-m slow`, the other four by default.
-_SLOW = {"04_table3_step_gauge.ipynb"}
+# The table-3 step-gauge notebook is the longest (~3 min of its own compilation in CI) and
+# the joint-calibration study next (79-210 s in CI runs on 2026-12-03; a radius's gradient
+# is also checked in tests/test_metrology_fits.py, the derivative through the solve in
+# tests/test_calibrate.py with -m slow): both run with
+# `-m slow`, the other three by default.
+_SLOW = {"04_table3_step_gauge.ipynb", "05_joint_calibration_study.ipynb"}
 
 
 @pytest.mark.parametrize(
