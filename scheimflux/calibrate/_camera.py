@@ -131,6 +131,23 @@ def _initial(obs, model, init):
     return cam, poses, "closed-form"
 
 
+def _focal_length_note(obs, model, how, camera, freeze) -> tuple[str, ...]:
+    """A note when the thick lens's f is held at the closed-form start's thin-lens
+    estimate (no focal length given): the value printed `(fixed)` is then no data-sheet
+    value and may be far from the lens's (35 % on a 100 mm double Gauss at ×2)."""
+    if model not in THICK_LENS_MODELS or how != "closed-form" or "camera.f" not in freeze:
+        return ()
+    nom = obs.nominal
+    if nom is not None and nom.focal_length_mm:
+        return ()
+    return (
+        f"f was not given: held at {float(camera.f):.4g} mm, a thin-lens estimate from the "
+        "boards' distance, not the lens's focal length (the images do not determine f: "
+        "e, z0 and the tilt take it up, the pixel rays stay the same); give "
+        "--focal-length-mm to hold the data-sheet value",
+    )
+
+
 def _default_distortion(model: str, distortion: str | None) -> str:
     """The most accurate default: radial-tangential for the thick lens; the pinhole
     (paper eq. 14) has none; OpenCV's model has its own (set by its flags)."""
@@ -239,8 +256,11 @@ def calibrate_camera(
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     if gauge == "profile":
         camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
-        return _profiled(SystemParams(camera, poses), data, how, obs, model, max_steps, throw)
+        cc = _profiled(SystemParams(camera, poses), data, how, obs, model, max_steps, throw)
+        f_note = _focal_length_note(obs, model, how, camera, cc.freeze)
+        return dataclasses.replace(cc, notes=f_note + cc.notes)
     freeze = _model_freeze(model, how, freeze, opencv_flags)
+    f_note = _focal_length_note(obs, model, how, camera, freeze)
     # The ideal camera first (the distortion at zero, held), then with the distortion
     # free. The distortion is held at run time (`hold`), not frozen: both solves have
     # the same state vector and run the same compiled program.
@@ -292,6 +312,7 @@ def calibrate_camera(
             fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, freeze,
                                                             solve_held)  # fmt: skip
     rms = _rms_px(fit.params, data)
+    notes = f_note + notes
     return CameraCalibration(
         fit.params.camera, fit.params.board_poses, fit, rms, how, tuple(freeze), notes=notes
     )
