@@ -63,6 +63,15 @@ def _jit_inner(fn):
     )
 
 
+def _jit_inline(fn):
+    """`_jit_inner`, inlined into its callers in Numba's IR (no call, no reference counts)."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(
+        cache=True, nogil=True, no_cfunc_wrapper=True, no_cpython_wrapper=True, inline="always"
+    )(inspect.unwrap(fn))
+
+
 _F32 = np.float32
 
 if numba is not None:
@@ -372,7 +381,7 @@ def _col_value(src, c, stride, k, anti, fused):
     return s
 
 
-@_jit_inner
+@_jit_inline
 def _plain(ccol, n_comp, lanes):
     """Whether composite column `ccol` is in OpenCV's remainder of `n_comp` columns
     processed `lanes` at a time."""
@@ -522,7 +531,7 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
     return win, strip, strip_top
 
 
-@_jit_inner
+@_jit_inline
 def _smoothed(q, j, strip, strip_top, main_top, main_h, r, scan, colsrc, coltop, ccol, k0):
     """`_smooth_at`, with its common case (the value held in `strip`) inlined."""
     p = main_top[j] + q - strip_top[j]
