@@ -756,7 +756,8 @@ def windowed_median(values, ok, window):
     `window` (odd) entries, NaN where there are none; a sorted sliding window."""
     n = values.size
     half = window // 2
-    padded = np.full(n + 2 * half, np.inf)
+    padded = np.empty(n + 2 * half)  # (np.full compiles its own helper)
+    padded[:] = np.inf
     for i in range(n):
         if ok[i]:
             padded[half + i] = values[i]
@@ -775,10 +776,18 @@ def windowed_median(values, ok, window):
 def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, trim, min_line):
     """`_link.link_segments` (labels, kept mask): one pass over the valid centres."""
     n = y.size
-    labels = np.full(n, -1, np.intp)
+    labels = np.empty(n, np.intp)
+    labels[:] = -1
     keep = np.zeros(n, np.bool_)
-    idx = np.flatnonzero(valid)
-    m = idx.size
+    m = 0  # np.flatnonzero(valid), written out (its generic version compiles slowly)
+    for i in range(n):
+        m += valid[i]
+    idx = np.empty(m, np.intp)
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            idx[k] = i
+            k += 1
     if m == 0:
         return labels, keep
     seg = np.empty(m, np.intp)
