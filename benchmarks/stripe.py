@@ -23,7 +23,8 @@ directory, each timing (CPU) its first `extract_stripe` on a plain 1600 x 1200 f
 then the first calls on the test suite's capture scenes and image kinds, then a second
 process on the now filled cache; per compiled kernel its own compile time (Numba's
 `numba:compile` events, less the kernels compiled inside them) and its number of
-compiled specialisations.
+compiled specialisations; "Numba library code": the rest of the events (NumPy functions
+and operators that Numba compiles for the kernels).
 
     python benchmarks/stripe.py [--frames N] [--quick] [--captures-only] [--views K]
                                 [--stages] [--speed-only] [--cold-compile N]
@@ -445,6 +446,9 @@ def cold_compile_table(runs: int) -> None:
     for name in names:
         mean = np.mean([r["compile"].get(name, 0.0) for r in results])
         print(f"{name:<22} {mean:>9.2f} {results[0]['signatures'][name]:>15}")
+    own = [sum(r["compile"].get(n, 0.0) for n in names) for r in results]
+    library = np.mean([sum(r["compile"].values()) - o for r, o in zip(results, own)])
+    print(f"{'(Numba library code)':<22} {library:>9.2f}")
     total = np.mean([sum(r["compile"].values()) for r in results])
     print(f"{'total':<22} {total:>9.2f} {sum(results[0]['signatures'].values()):>15}")
 
