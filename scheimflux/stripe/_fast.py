@@ -88,14 +88,18 @@ if numba is not None:
         return sig, codegen
 
     # LAPACK's `dgesv`, as `np.linalg.solve` calls it in compiled code (the same routine,
-    # so the same values): called directly, its checks written out below, since the
-    # generic wrapper (any shape and type, formatted messages) compiles for ~8 s
-    from numba.np import linalg as _nb_linalg
+    # so the same values): called directly, its checks written out in `_solve4`, since
+    # the generic wrapper (any shape and type, formatted messages) compiles for ~8 s.
+    # (Numba's internal names: where a version lacks them, `np.linalg.solve` is used.)
+    try:
+        from numba.np import linalg as _nb_linalg
 
-    _nb_linalg.ensure_lapack()
-    _xgesv = _nb_linalg._LAPACK().numba_xgesv(_nb_types.float64)
-    _F_INT = _nb_linalg.F_INT_nptype
-    _keep_alive = _nb_linalg._dummy_liveness_func
+        _nb_linalg.ensure_lapack()
+        _xgesv = _nb_linalg._LAPACK().numba_xgesv(_nb_types.float64)
+        _F_INT = _nb_linalg.F_INT_nptype
+        _keep_alive = _nb_linalg._dummy_liveness_func
+    except (ImportError, AttributeError):  # pragma: no cover - other Numba versions
+        _xgesv = None
 
 else:  # pragma: no cover - the NumPy reference runs instead
 
@@ -1022,10 +1026,10 @@ def clipped_lines(flat, stride_y, stride_x, n_rows, found, row, centre, level):
     return out
 
 
-@_jit_inner
 def _solve4(a, b):
     """`np.linalg.solve(a, b)` for a (4, 4) float64 `a` and (4,) `b`: the same LAPACK
-    call (`dgesv` on column-major copies) and the same errors."""
+    call (`dgesv` on column-major copies) and the same errors (LAPACK's code for an
+    illegal argument, impossible here, raises too)."""
     for u in range(4):
         for v in range(4):
             if not np.isfinite(a[u, v]):
@@ -1044,6 +1048,15 @@ def _solve4(a, b):
     if r != 0:
         raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
     return x
+
+
+if numba is not None and _xgesv is None:  # pragma: no cover - other Numba versions
+
+    def _solve4(a, b):
+        return np.linalg.solve(a, b)
+
+
+_solve4 = _jit_inner(_solve4)
 
 
 @_jit
