@@ -18,8 +18,16 @@ full-frame Steger baseline on the same image.
 Stages (`--stages`): CPU time per stage of `extract_stripe` on the plain speed frames
 (one thread), from timers around the stage functions.
 
+Cold compile (`--cold-compile N`): N fresh processes, each with an empty Numba cache
+directory, each timing (CPU) its first `extract_stripe` on a plain 1600 x 1200 frame,
+then the first calls on the test suite's capture scenes and image kinds, then a second
+process on the now filled cache; per compiled kernel its own compile time (Numba's
+`numba:compile` events, less the kernels compiled inside them) and its number of
+compiled specialisations; "Numba library code": the rest of the events (NumPy functions
+and operators that Numba compiles for the kernels).
+
     python benchmarks/stripe.py [--frames N] [--quick] [--captures-only] [--views K]
-                                [--stages] [--speed-only]
+                                [--stages] [--speed-only] [--cold-compile N]
 """
 
 from __future__ import annotations
@@ -350,6 +358,101 @@ def capture_table(quick: bool, n_views: int) -> None:
         )
 
 
+def _cold_child() -> None:
+    """One process of `cold_compile_table` (run with its own `NUMBA_CACHE_DIR`): prints
+    one line of JSON with the CPU times and the per-kernel compile times."""
+    import json
+
+    from numba.core import event
+
+    spent: dict[str, float] = {}
+    stack: list[list] = []  # per open compile: [kernel, start, time of the nested ones]
+
+    class _Timer(event.Listener):
+        def on_start(self, ev):
+            stack.append([ev.data["dispatcher"].py_func.__name__, time.process_time(), 0.0])
+
+        def on_end(self, ev):
+            name, t0, nested = stack.pop()
+            total = time.process_time() - t0
+            spent[name] = spent.get(name, 0.0) + total - nested
+            if stack:
+                stack[-1][2] += total
+
+    frame = _speed_frames(1)[0]
+    steps = {}
+    cv2.setNumThreads(1)
+    with event.install_listener("numba:compile", _Timer()):
+        for label in ("plain, first call", "plain, second call"):
+            c0 = time.process_time()
+            extract_stripe(frame, width_px=5)
+            steps[label] = time.process_time() - c0
+        cases = []
+        img, _ = render_stripe(
+            (300, 800), lambda u: 150.0 + 40.0 * np.sin(u / 150.0), width_px=5, peak=0.4,
+            ambient="low", noise_sigma=0.02, seed=1,
+        )  # fmt: skip
+        cases += [(img, {}), (img, {"width_px": 5}), (img.T.copy(), {})]
+        cases += [(img.astype(np.float32) / 255, {"band_px": 12})]
+        from scheimflux.simulate import render_capture
+
+        base = dict(shape=(300, 400), line_angle_deg=15.0, line_offset_px=9.0, blur_px=(0.5, 1.2))
+        for kw in ({}, dict(line_angle_deg=88.0), dict(colour=True, ambient=0.5)):
+            on, _ = render_capture(seed=3, **{**base, **kw})
+            off, _ = render_capture(seed=3, laser_on=False, **{**base, **kw})
+            cases += [(on, {}), (on, {"background": off})]
+        c0 = time.process_time()
+        for img, kw in cases:
+            extract_stripe(img, **kw)
+        steps["test images and captures, first calls"] = time.process_time() - c0
+    counts = {
+        name: len(d.signatures)
+        for name, d in vars(_fast).items()
+        if isinstance(d, _fast.numba.core.registry.CPUDispatcher)
+    }
+    print(json.dumps({"steps": steps, "compile": spent, "signatures": counts}))
+
+
+def cold_compile_table(runs: int) -> None:
+    """`runs` fresh processes, each on an empty Numba cache, then one on its filled cache
+    (the per-kernel times: the mean over the cold runs)."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    print(f"\ncold compile (Numba {_fast.numba.__version__}; CPU s; fresh processes)")
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    results = []
+    for k in range(runs + 1):
+        if k < runs:
+            cache = tempfile.mkdtemp(prefix="numba-cold-")
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        out = subprocess.run(
+            [sys.executable, __file__, "--cold-child"], env=env, check=True,
+            capture_output=True, text=True,
+        ).stdout  # fmt: skip
+        res = json.loads(out.strip().splitlines()[-1])
+        kind = "cold" if k < runs else "filled cache"
+        print(
+            f"{kind:<13}"
+            + "".join(f" | {name} {t:6.2f}" for name, t in res["steps"].items())
+            + f" | compile events {sum(res['compile'].values()):6.2f}"
+        )
+        if k < runs:
+            results.append(res)
+    names = sorted(results[0]["signatures"], key=lambda n: -results[0]["compile"].get(n, 0))
+    print(f"{'kernel':<22} {'compile s':>9} {'specialisations':>15}")
+    for name in names:
+        mean = np.mean([r["compile"].get(name, 0.0) for r in results])
+        print(f"{name:<22} {mean:>9.2f} {results[0]['signatures'][name]:>15}")
+    own = [sum(r["compile"].get(n, 0.0) for n in names) for r in results]
+    library = np.mean([sum(r["compile"].values()) - o for r, o in zip(results, own)])
+    print(f"{'(Numba library code)':<22} {library:>9.2f}")
+    total = np.mean([sum(r["compile"].values()) for r in results])
+    print(f"{'total':<22} {total:>9.2f} {sum(results[0]['signatures'].values()):>15}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -360,7 +463,17 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=4, help="ray-traced board views")
     parser.add_argument("--stages", action="store_true", help="only the per-stage CPU table")
     parser.add_argument("--speed-only", action="store_true", help="only the speed table")
+    parser.add_argument(
+        "--cold-compile", type=int, metavar="N", help="only the compile time on N empty caches"
+    )
+    parser.add_argument("--cold-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.cold_child:
+        _cold_child()
+        return
+    if args.cold_compile:
+        cold_compile_table(args.cold_compile)
+        return
     if args.stages:
         stage_table(40 if args.quick else args.frames)
         return

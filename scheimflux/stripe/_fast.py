@@ -47,18 +47,32 @@ def _jit(fn):
     if numba is None:  # pragma: no cover
         return fn
     # the plain function: a run-time type-checking import hook (the test suite's
-    # jaxtyping hook) wraps every function of the package, and Numba compiles Python
-    return numba.njit(cache=True, nogil=True)(inspect.unwrap(fn))
+    # jaxtyping hook) wraps every function of the package, and Numba compiles Python.
+    # No C-callable wrapper (only for passing a kernel as a first-class function, which
+    # nothing here does): less code to compile.
+    return numba.njit(cache=True, nogil=True, no_cfunc_wrapper=True)(inspect.unwrap(fn))
 
 
-_F32 = np.float32
+def _jit_inner(fn):
+    """`_jit` for the helpers that only compiled code calls: no Python-callable wrapper
+    either (the unboxing of every argument is most of a small function's code)."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(cache=True, nogil=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)(
+        inspect.unwrap(fn)
+    )
 
 
 def _jit_inline(fn):
-    """`_jit`, inlined into its callers in Numba's IR (no call, no reference counts)."""
+    """`_jit_inner`, inlined into its callers in Numba's IR (no call, no reference counts)."""
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True, inline="always")(inspect.unwrap(fn))
+    return numba.njit(
+        cache=True, nogil=True, no_cfunc_wrapper=True, no_cpython_wrapper=True, inline="always"
+    )(inspect.unwrap(fn))
+
+
+_F32 = np.float32
 
 if numba is not None:
 
@@ -73,13 +87,27 @@ if numba is not None:
 
         return sig, codegen
 
+    # LAPACK's `dgesv`, as `np.linalg.solve` calls it in compiled code (the same routine,
+    # so the same values): called directly, its checks written out in `_solve4`, since
+    # the generic wrapper (any shape and type, formatted messages) compiles for ~8 s.
+    # (Numba's internal names: where a version lacks them, `np.linalg.solve` is used.)
+    try:
+        from numba.np import linalg as _nb_linalg
+
+        _nb_linalg.ensure_lapack()
+        _xgesv = _nb_linalg._LAPACK().numba_xgesv(_nb_types.float64)
+        _F_INT = _nb_linalg.F_INT_nptype
+        _keep_alive = _nb_linalg._dummy_liveness_func
+    except (ImportError, AttributeError):  # pragma: no cover - other Numba versions
+        _xgesv = None
+
 else:  # pragma: no cover - the NumPy reference runs instead
 
     def _fma(a, b, c):
         return np.float32(np.float64(a) * np.float64(b) + np.float64(c))
 
 
-@_jit
+@_jit_inner
 def _sign(x):
     if x > 0:
         return 1.0
@@ -90,7 +118,7 @@ def _sign(x):
     return x  # NaN
 
 
-@_jit
+@_jit_inner
 def _clip01(x):
     if x < 0.0:
         return 0.0
@@ -99,7 +127,7 @@ def _clip01(x):
     return x  # NaN stays NaN, as np.clip
 
 
-@_jit
+@_jit_inner
 def _line_point(rx, ry, rxx, rxy, ryy, inside):
     """`_steger._line_points` on one pixel (float32 throughout)."""
     half = _F32(0.5)
@@ -128,7 +156,7 @@ def _line_point(rx, ry, rxx, rxy, ryy, inside):
     return nx, ny, lam, t, ok
 
 
-@_jit
+@_jit_inner
 def _sorted_window(padded, window):
     """The first `window` entries of `padded` sorted by insertion, and how many of them
     are finite (missing entries are +inf)."""
@@ -145,7 +173,7 @@ def _sorted_window(padded, window):
     return buf, finite
 
 
-@_jit
+@_jit_inner
 def _slide(buf, gone, v):
     """Replace the value `gone` of the sorted window `buf` by `v`, in place, keeping it
     sorted: `v` takes `gone`'s slot and moves down or up to its place."""
@@ -162,7 +190,7 @@ def _slide(buf, gone, v):
     buf[p] = v
 
 
-@_jit
+@_jit_inner
 def _median_normals(nx, ny, found, window):
     """`_steger._smooth_normal` (float64 out): a sorted sliding window (one removal and
     one insertion per scan line) over the angles, padded as the reference pads them."""
@@ -203,7 +231,7 @@ def _median_normals(nx, ny, found, window):
     return sx, sy
 
 
-@_jit
+@_jit_inner
 def _hermite(p0, p1, m0, m1):
     a2 = 3.0 * (p1 - p0) - 2.0 * m0 - m1
     a3 = 2.0 * (p0 - p1) + m0 + m1
@@ -234,7 +262,7 @@ ROW_LANES = 4
 COL_LANES = 8
 
 
-@_jit
+@_jit_inner
 def _row_pass(buf, boff, k, out, ooff, count):
     """`out[ooff + m] = sum_t k[t] buf[boff + m + t]` for m < count (flat float32 arrays),
     as OpenCV's float32 row filter. (Views, so that every index is a sum of loop
@@ -251,7 +279,7 @@ def _row_pass(buf, boff, k, out, ooff, count):
             dst[m] = _fma(src[m + t], kt, dst[m])
 
 
-@_jit
+@_jit_inner
 def _row_pass3(buf, boff, k0, k1, k2, out0, out1, out2, ooff, count):
     """`_row_pass` with three kernels of one size at once (each input read once)."""
     src = buf[boff:]
@@ -273,7 +301,7 @@ def _row_pass3(buf, boff, k0, k1, k2, out0, out1, out2, ooff, count):
             d2[m] = _fma(x, a2, d2[m])
 
 
-@_jit
+@_jit_inner
 def _col_pass2(src, first, stride, k_sym, k_anti, out_sym, out_anti, count):
     """`_col_pass` with a symmetric and an antisymmetric kernel of one size at once."""
     r = k_sym.size // 2
@@ -294,7 +322,7 @@ def _col_pass2(src, first, stride, k_sym, k_anti, out_sym, out_anti, count):
             da[m] = _fma(u - v, ka, da[m])
 
 
-@_jit
+@_jit_inner
 def _row_fused(buf, k, i):
     """One output of `_row_pass`."""
     s = buf[i] * k[0]
@@ -303,7 +331,7 @@ def _row_fused(buf, k, i):
     return s
 
 
-@_jit
+@_jit_inner
 def _row_value(buf, k, i):
     """One output of `_row_pass` as OpenCV's remainder columns compute it: product and
     sum rounded apart, except in the taps past the last multiple of 4 (its compiled
@@ -318,7 +346,7 @@ def _row_value(buf, k, i):
     return s
 
 
-@_jit
+@_jit_inner
 def _col_pass(src, first, stride, k, anti, out, count):
     """`out[m] = sum_t k[t] src[first + m + (t - r) stride]` for m < count (flat float32
     arrays of rows of `stride`), as OpenCV's float32 (anti)symmetric column filter."""
@@ -344,7 +372,7 @@ def _col_pass(src, first, stride, k, anti, out, count):
                 dst[m] = _fma(up[m] + down[m], kt, dst[m])
 
 
-@_jit
+@_jit_inner
 def _col_value(src, c, stride, k, anti, fused):
     """One output of `_col_pass` at flat index `c`; `fused=False`: the product and the
     sum rounded apart (OpenCV's remainder columns)."""
@@ -732,7 +760,8 @@ def windowed_median(values, ok, window):
     `window` (odd) entries, NaN where there are none; a sorted sliding window."""
     n = values.size
     half = window // 2
-    padded = np.full(n + 2 * half, np.inf)
+    padded = np.empty(n + 2 * half)  # (np.full compiles its own helper)
+    padded[:] = np.inf
     for i in range(n):
         if ok[i]:
             padded[half + i] = values[i]
@@ -751,10 +780,18 @@ def windowed_median(values, ok, window):
 def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, trim, min_line):
     """`_link.link_segments` (labels, kept mask): one pass over the valid centres."""
     n = y.size
-    labels = np.full(n, -1, np.intp)
+    labels = np.empty(n, np.intp)
+    labels[:] = -1
     keep = np.zeros(n, np.bool_)
-    idx = np.flatnonzero(valid)
-    m = idx.size
+    m = 0  # np.flatnonzero(valid), written out (its generic version compiles slowly)
+    for i in range(n):
+        m += valid[i]
+    idx = np.empty(m, np.intp)
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            idx[k] = i
+            k += 1
     if m == 0:
         return labels, keep
     seg = np.empty(m, np.intp)
@@ -864,7 +901,7 @@ def column_argmax(a):
     return best
 
 
-@_jit
+@_jit_inner
 def _select(a, k):
     """The `k`-th smallest entry of `a` (reordered in place; no NaN): quickselect with
     a median-of-three pivot, leaving `a[:k]` <= `a[k]`."""
@@ -897,7 +934,7 @@ def _select(a, k):
     return a[k]
 
 
-@_jit
+@_jit_inner
 def _median(x):
     """`_image._median` (the mean of the two middle values for an even count)."""
     s = x.copy()
@@ -938,7 +975,9 @@ def consistent_passes(yv, valid, keep, off_curve, half, floor_px):
                 w[0, i] = 1.0 if keep[i] else 0.0
             p, c = local_fit(yv, w, half)
             pred, count = p[0], c[0]
-        r = np.abs(yv - pred)
+        r = np.empty(n)  # np.abs(yv - pred), as a loop (an array expression compiles slowly)
+        for i in range(n):
+            r[i] = abs(yv[i] - pred[i])
         judged = np.zeros(n, np.bool_)
         n_judged = 0
         n_kept = 0
@@ -986,6 +1025,38 @@ def clipped_lines(flat, stride_y, stride_x, n_rows, found, row, centre, level):
                 out[j] = True
     return out
 
+
+def _solve4(a, b):
+    """`np.linalg.solve(a, b)` for a (4, 4) float64 `a` and (4,) `b`: the same LAPACK
+    call (`dgesv` on column-major copies) and the same errors (LAPACK's code for an
+    illegal argument, impossible here, raises too)."""
+    for u in range(4):
+        for v in range(4):
+            if not np.isfinite(a[u, v]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    for u in range(4):
+        if not np.isfinite(b[u]):
+            raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    acpy = np.empty((4, 4))  # row v: column v of `a`
+    for u in range(4):
+        for v in range(4):
+            acpy[v, u] = a[u, v]
+    x = b.copy()
+    ipiv = np.empty(4, _F_INT)
+    r = _xgesv(100, 4, 1, acpy.ctypes, 4, ipiv.ctypes, x.ctypes, 4)  # 100: ord("d")
+    _keep_alive([acpy.size, x.size, ipiv.size])
+    if r != 0:
+        raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+    return x
+
+
+if numba is not None and _xgesv is None:  # pragma: no cover - other Numba versions
+
+    def _solve4(a, b):
+        return np.linalg.solve(a, b)
+
+
+_solve4 = _jit_inner(_solve4)
 
 
 @_jit
@@ -1042,7 +1113,7 @@ def cubic_seed(y, valid):
                     b[u] += p[u] * yx[i]
         for u in range(4):
             a[u, u] += 1e-12
-        coef = np.linalg.solve(a, b)
+        coef = _solve4(a, b)
         n_seed = 0
         for i in range(m):
             x1 = xs[i]
