@@ -29,6 +29,7 @@ from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
+from ._rims import edge_spread, rim_centres
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -173,8 +174,9 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
 def _signal(image, background, channel, width, normalise):
     """The 2-D signal image, the plain image whose clipping marks saturation, the
     channel used, the signal before the albedo normalisation (the signal itself
-    without one), the plain laser-off channel (None without one) and the colour
-    candidates in score order (the channel alone unless it was chosen)."""
+    without one), the plain laser-off channel and the denoised laser-off signal that
+    was subtracted (None and None without one) and the colour candidates in score
+    order (the channel alone unless it was chosen)."""
     img = as_image(image)
     if background is not None:
         off = as_image(background, name="background")
@@ -190,7 +192,7 @@ def _signal(image, background, channel, width, normalise):
     elif img.ndim == 2 and channel != "grey":
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
-    plain, off_level = sig, None
+    plain, off_level, base = sig, None, None
     if background is not None:
         base, level = channel_image(off, channel)
         base = _denoised(base.astype(np.float32))
@@ -198,7 +200,7 @@ def _signal(image, background, channel, width, normalise):
         off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
             sig = _albedo_normalised(sig, level.astype(np.float32))
-    return sig, sat, channel, plain, off_level, ranked
+    return sig, sat, channel, plain, off_level, base, ranked
 
 
 def _others_mean(image: Any, channel: str) -> np.ndarray:
@@ -446,7 +448,7 @@ def _extract_track(
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     asked = orientation
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel, unnormalised, off_level, ranked = _signal(
+    img, sat_img, channel, unnormalised, off_level, off_signal, ranked = _signal(
         image, background, channel, width, normalise_background
     )
     roi = as_mask(mask, img.shape)
@@ -650,6 +652,26 @@ def _extract_track(
                     3.0 * estimate_noise(off_level), shape[0],
                 )[0]  # fmt: skip
             valid &= ~saturated | even
+            if off_signal is not None and not channel.endswith("-minus-others"):
+                # Step 4b: the clipped scan lines refused above (a checker edge under the
+                # plateau or near a rim) read from the plateau's flanks, the albedo
+                # taken out by the laser-off level (`_rims.py`)
+                refused = saturated & ~valid & coarse.support
+                if refused.any() and (saturated & valid).sum() >= 8:
+                    rows_w = np.clip(
+                        row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1
+                    )
+                    spread = edge_spread(off_signal, 3.0 * noise).reshape(-1)
+                    y_rim, one_side = rim_centres(
+                        gather(rows_w, cols, flat_sat).astype(np.float64),
+                        gather(rows_w, cols, off_signal.reshape(-1)).astype(np.float64),
+                        gather(rows_w, cols, spread).astype(np.float64),
+                        float(sat_level), row, reach, lines.y, saturated & valid, refused,
+                        noise, 3.0 * noise,
+                    )  # fmt: skip
+                    got = np.isfinite(y_rim)
+                    lines = dataclasses.replace(lines, y=np.where(got, y_rim, lines.y))
+                    valid |= got
             saturated &= valid
 
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
