@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import math
 import os
 from collections.abc import Iterable
@@ -29,7 +30,7 @@ from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
-from ._rims import edge_spread, rim_centres
+from ._rims import bracketed, edge_spread, rim_centres
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -586,6 +587,7 @@ def _extract_track(
     # right under a rim (a line along a narrow white strip between black ones, as on a
     # ChArUco board: a symmetric plateau 1 px off the line).
     first_pass = valid
+    rim_job = None  # step 4b, after the step fit
     saturated = clipped(lines, coarse.support)
     if saturated.any():
         cols = np.arange(shape[1])
@@ -654,24 +656,23 @@ def _extract_track(
             valid &= ~saturated | even
             if off_signal is not None and not channel.endswith("-minus-others"):
                 # Step 4b: the clipped scan lines refused above (a checker edge under the
-                # plateau or near a rim) read from the plateau's flanks, the albedo
-                # taken out by the laser-off level (`_rims.py`)
-                refused = saturated & ~valid & coarse.support
-                if refused.any() and (saturated & valid).sum() >= 8:
+                # plateau or near a rim) that the step fit below does not recover either,
+                # read from the plateau's flanks, the albedo taken out by the laser-off
+                # level (`_rims.py`)
+                rim_todo = saturated & ~valid & coarse.support
+                if rim_todo.any() and (saturated & valid).sum() >= 8:
                     rows_w = np.clip(
                         row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1
                     )
                     spread = edge_spread(off_signal, 3.0 * noise).reshape(-1)
-                    y_rim, one_side = rim_centres(
+                    rim_job = functools.partial(
+                        rim_centres,
                         gather(rows_w, cols, flat_sat).astype(np.float64),
                         gather(rows_w, cols, off_signal.reshape(-1)).astype(np.float64),
                         gather(rows_w, cols, spread).astype(np.float64),
-                        float(sat_level), row, reach, lines.y, saturated & valid, refused,
-                        noise, 3.0 * noise,
+                        float(sat_level), row, reach, lines.y.copy(), saturated & valid,
+                        noise=noise, floor=3.0 * noise,
                     )  # fmt: skip
-                    got = np.isfinite(y_rim)
-                    lines = dataclasses.replace(lines, y=np.where(got, y_rim, lines.y))
-                    valid |= got
             saturated &= valid
 
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
@@ -696,6 +697,15 @@ def _extract_track(
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
+    rim = np.zeros(shape[1], bool)
+    if rim_job is not None and (rim_todo & ~valid).any():
+        y_rim, one_side = rim_job(todo=rim_todo & ~valid)
+        rim = np.isfinite(y_rim)
+        # one flank alone: only between centres of both flanks or of the plateau
+        rim &= ~one_side | bracketed(one_side & rim, (valid | rim) & ~one_side)
+        y_fit = np.where(rim, y_rim, y_fit)
+        valid |= rim
+        saturated |= rim
     if background is None and channel.endswith("-minus-others") and valid.any():
         # The laser's colour less the others holds albedo x laser light alone: an albedo
         # edge along the line, inside its profile (a marker's bit border), cuts the
@@ -780,6 +790,8 @@ def _extract_track(
     confidence = np.where(
         refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
     )
+    # centres read from the plateau's flanks (step 4b): 0.5, a model reading too
+    confidence = np.where(rim, 0.5, confidence)
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),

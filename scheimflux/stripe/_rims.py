@@ -32,9 +32,12 @@ CALIB_MIN = 24
 # Rounds of that fit: the first against the accepted plateau centres, each next one
 # against the accepted scan lines' centres from their own two flanks.
 CALIB_ROUNDS = 3
-# Largest difference (px) of the centres read from the two flanks, and of a one-flank
-# centre from the line through its neighbours; see `rim_centres`.
+# Largest difference (px) of the centres read from the two flanks; see `rim_centres`.
 SIDES_AGREE = 0.25
+# A centre read from one flank needs a centre from both (or an accepted plateau centre)
+# within this many scan lines on either side along the line (`bracketed`): near the
+# line's end, where the target's border cuts the plateau, one flank stays clean.
+ONE_SIDE_REACH = 20
 
 
 def edge_spread(off: np.ndarray, floor: float) -> np.ndarray:
@@ -123,8 +126,8 @@ def rim_centres(on, off, spread, sat_level, row0, reach, y_ref, calib, todo, noi
     centre = np.full(n, np.nan)
     one_side = np.zeros(n, bool)
     ref = np.where(calib, y_ref, np.nan)
-    for _ in range(CALIB_ROUNDS):
-        kq = _local_model(sides, ref, n)
+    for round_ in range(CALIB_ROUNDS):
+        kq = _local_model(sides, ref, n, whole=round_ == 0)
         if kq is None:
             return centre, one_side
         both, one, est = _flank_centres(sides, *kq)
@@ -137,11 +140,12 @@ def rim_centres(on, off, spread, sat_level, row0, reach, y_ref, calib, todo, noi
     return centre, one_side
 
 
-def _local_model(sides, ref, n):
+def _local_model(sides, ref, n, whole=False):
     """`k` and `q = 1 / (2 s^2)` per scan line (NaN where fewer than `CALIB_MIN` pixels)
     from the weighted least-squares fit of `ln R = k - q (y - ref)^2` to the flank
     pixels of the scan lines within +- `CALIB_HALF` with a reference `ref`; None if
-    there are none at all."""
+    there are none at all. `whole`: where there are too few, the fit to all of them
+    (the accepted plateau centres can be few: short pieces between checker edges)."""
     sums = np.zeros((6, n))
     for y, z, sz, ok in sides:
         use = ok & np.isfinite(ref)[None, :]
@@ -155,7 +159,10 @@ def _local_model(sides, ref, n):
     np.cumsum(sums, axis=1, out=c[:, 1:])
     lo = np.clip(np.arange(n) - CALIB_HALF, 0, n)
     hi = np.clip(np.arange(n) + CALIB_HALF + 1, 0, n)
-    cnt, sw, swx, swxx, swz, swxz = c[:, hi] - c[:, lo]
+    win = c[:, hi] - c[:, lo]
+    if whole:
+        win = np.where(win[:1] >= CALIB_MIN, win, c[:, -1:])
+    cnt, sw, swx, swxx, swz, swxz = win
     det = sw * swxx - swx * swx
     ok = (cnt >= CALIB_MIN) & (det > 1e-12 * np.maximum(sw * swxx, 1e-300))
     det = np.where(ok, det, 1.0)
@@ -184,3 +191,12 @@ def _flank_centres(sides, k, q):
     two = (np.nan_to_num(c0) * w0 + np.nan_to_num(c1) * w1) / np.where(has0 | has1, w0 + w1, 1.0)
     est = np.where(both | one, two, np.nan)
     return both, one, est
+
+
+def bracketed(one: np.ndarray, anchored: np.ndarray, reach: int = ONE_SIDE_REACH) -> np.ndarray:
+    """Scan lines of `one` with a scan line of `anchored` within `reach` on each side."""
+    n = one.size
+    idx = np.arange(n)
+    prev = np.maximum.accumulate(np.where(anchored, idx, -n - reach))
+    nxt = np.minimum.accumulate(np.where(anchored, idx, 2 * n + reach)[::-1])[::-1]
+    return one & (idx - prev <= reach) & (nxt - idx <= reach)
