@@ -697,12 +697,13 @@ def _extract_track(
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
-    rim = np.zeros(shape[1], bool)
+    rim = rim_one = np.zeros(shape[1], bool)
     if rim_job is not None and (rim_todo & ~valid).any():
         y_rim, one_side = rim_job(todo=rim_todo & ~valid)
         rim = np.isfinite(y_rim)
         # one flank alone: only between centres of both flanks or of the plateau
         rim &= ~one_side | bracketed(one_side & rim, (valid | rim) & ~one_side)
+        rim_one = rim & one_side
         y_fit = np.where(rim, y_rim, y_fit)
         valid |= rim
         saturated |= rim
@@ -774,6 +775,9 @@ def _extract_track(
         segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
         if _chain_span(y, segment, jump, min_line) < min_line:
             segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+    # a centre read from one flank (step 4b) only between others of its linked segment
+    linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
+    segment = np.where(linked, segment, -1)
     valid = linked
     saturated &= valid
     y = np.where(valid, y_fit, np.nan)
