@@ -25,6 +25,9 @@ FLANK = 4
 # Pixels either side of a flank pixel over which the laser-off level must stay within
 # `RIM_RATIO_MAX` (in log): the reach of the blur (lens and pixel, ~1 px) and one more.
 EDGE_REACH = 2
+# Lowest laser light over the ambient light (`R`) of a flank pixel used: an error of the
+# laser-off level moves ln R by its relative size over R.
+R_MIN = 0.5
 # Scan lines on either side whose accepted plateau centres fit `k` and `s`.
 CALIB_HALF = 60
 # Fewest flank pixels of accepted scan lines in that fit.
@@ -107,6 +110,7 @@ def rim_centres(on, off, spread, sat_level, row0, reach, y_ref, calib, todo, noi
     diff = on - off
     offs = np.arange(n_win)[:, None] - reach
     usable = ~clip & (spread <= RIM_RATIO_MAX) & (off >= floor) & (diff >= 8.0 * noise)
+    usable &= diff >= R_MIN * off
     cols = np.arange(n)[None, :]
     sides = []
     lit = []  # the flank's first pixel is lit by the line (the line is there)
@@ -122,7 +126,12 @@ def rim_centres(on, off, spread, sat_level, row0, reach, y_ref, calib, todo, noi
             * np.sqrt(np.maximum(on[at, cols], 1.0) / max(float(np.median(off)), 1.0))
             / np.maximum(diff[at, cols], 1e-6)
         )
-        sides.append((y, z, np.maximum(sz, 1e-3), ok))
+        lv = np.log(np.maximum(off[at, cols], floor))
+        sides.append((y, z, np.maximum(sz, 1e-3), ok, lv))
+    # the laser-off level's log about its middle (the fit's albedo term, `_local_model`)
+    lv_all = np.concatenate([sd[4][sd[3]] for sd in sides])
+    mid = float(np.median(lv_all)) if lv_all.size else 0.0
+    sides = [(y, z, sz, ok, lv - mid) for y, z, sz, ok, lv in sides]
     centre = np.full(n, np.nan)
     one_side = np.zeros(n, bool)
     ref = np.where(calib, y_ref, np.nan)
@@ -141,43 +150,59 @@ def rim_centres(on, off, spread, sat_level, row0, reach, y_ref, calib, todo, noi
 
 
 def _local_model(sides, ref, n, whole=False):
-    """`k` and `q = 1 / (2 s^2)` per scan line (NaN where fewer than `CALIB_MIN` pixels)
-    from the weighted least-squares fit of `ln R = k - q (y - ref)^2` to the flank
-    pixels of the scan lines within +- `CALIB_HALF` with a reference `ref`; None if
-    there are none at all. `whole`: where there are too few, the fit to all of them
-    (the accepted plateau centres can be few: short pieces between checker edges)."""
-    sums = np.zeros((6, n))
-    for y, z, sz, ok in sides:
+    """`k0`, `k1` and `q = 1 / (2 s^2)` per scan line (NaN where fewer than `CALIB_MIN`
+    pixels) from the weighted least-squares fit of `ln R = k0 + k1 L - q (y - ref)^2`
+    (`L`: the log laser-off level about its middle) to the flank pixels of the scan lines
+    within +- `CALIB_HALF` with a reference `ref`; None if there are none at all.
+
+    `k1` takes up a laser-off level that is off by a power of itself (a drawn target's
+    black level a few grey levels off: a fixed factor on `R` over the black squares,
+    which would move one-flank centres by `s^2 ln(factor) / (y - c)`, ~0.2 px at 15 %);
+    with a real laser-off image it fits ~0. It is held towards 0 (a ridge of 0.01 of the
+    weights) where the flanks show one albedo only. `whole`: where there are too few
+    pixels, the fit to all of them (the accepted plateau centres can be few: short
+    pieces between checker edges)."""
+    sums = np.zeros((10, n))
+    for y, z, sz, ok, lv in sides:
         use = ok & np.isfinite(ref)[None, :]
         x = np.where(use, (y - np.nan_to_num(ref)[None, :]) ** 2, 0.0)
         w = np.where(use, 1.0 / sz**2, 0.0)
         zz = np.where(use, z, 0.0)
-        sums += np.stack([use, w, w * x, w * x * x, w * zz, w * x * zz]).sum(axis=1)
+        ll = np.where(use, lv, 0.0)
+        terms = [use, w, w * ll, w * x, w * ll * ll, w * ll * x, w * x * x, w * zz,
+                 w * ll * zz, w * x * zz]  # fmt: skip
+        sums += np.stack(terms).sum(axis=1)
     if sums[0].sum() < CALIB_MIN:
         return None
-    c = np.zeros((6, n + 1))
+    c = np.zeros((10, n + 1))
     np.cumsum(sums, axis=1, out=c[:, 1:])
     lo = np.clip(np.arange(n) - CALIB_HALF, 0, n)
     hi = np.clip(np.arange(n) + CALIB_HALF + 1, 0, n)
     win = c[:, hi] - c[:, lo]
     if whole:
         win = np.where(win[:1] >= CALIB_MIN, win, c[:, -1:])
-    cnt, sw, swx, swxx, swz, swxz = win
-    det = sw * swxx - swx * swx
-    ok = (cnt >= CALIB_MIN) & (det > 1e-12 * np.maximum(sw * swxx, 1e-300))
-    det = np.where(ok, det, 1.0)
-    k = (swz * swxx - swx * swxz) / det
-    q = (swx * swz - sw * swxz) / det
-    ok &= q > 0
-    return np.where(ok, k, np.nan), np.where(ok, q, np.nan)
+    cnt, sw, sl, sx, sll, slx, sxx, sz_, slz, sxz = win
+    # normal equations for (k0, k1, -q) with rows (1, L, x)
+    A = np.stack([np.stack([sw, sl, sx], -1), np.stack([sl, sll + 0.01 * sw, slx], -1),
+                  np.stack([sx, slx, sxx], -1)], -2)  # fmt: skip
+    rhs = np.stack([sz_, slz, sxz], -1)
+    ok = cnt >= CALIB_MIN
+    A = np.where(ok[:, None, None], A, np.eye(3))
+    A = A + 1e-12 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    sol = np.linalg.solve(A, np.where(ok[:, None], rhs, 0.0)[..., None])[..., 0]
+    k0, k1, q = sol[:, 0], sol[:, 1], -sol[:, 2]
+    ok &= np.isfinite(q) & (q > 0)
+    nan = np.full(n, np.nan)
+    return np.where(ok, k0, nan), np.where(ok, k1, nan), np.where(ok, q, nan)
 
 
-def _flank_centres(sides, k, q):
+def _flank_centres(sides, k0, k1, q):
     """Per scan line: both flanks give a centre and agree within `SIDES_AGREE`, one
     flank alone gives one, and the centre (their precision-weighted mean)."""
     per = []
-    for step, (y, z, sz, ok) in zip((-1, 1), sides, strict=True):
-        d = np.sqrt(np.maximum(k[None, :] - z, 0.0) / q[None, :])
+    for step, (y, z, sz, ok, lv) in zip((-1, 1), sides, strict=True):
+        k = k0[None, :] + k1[None, :] * lv
+        d = np.sqrt(np.maximum(k - z, 0.0) / q[None, :])
         c = y - step * d  # the lower flank (step -1): c = y + d
         # each pixel's centre std: sz / |d ln R / dy| = sz / (2 q d)
         wc = np.where(ok & np.isfinite(c), (2.0 * q[None, :] * np.maximum(d, 1.0) / sz) ** 2, 0.0)
