@@ -408,11 +408,19 @@ def test_clipped_diagonal_line_on_checkerboard(angle):
     on, off, truth, shape = _clipped_on_board(board, (5.0, 4.0), 0.8, 4.0, 1.0, angle, 13.0)
     res = extract_stripe(on, background=off)
     s = score_stripe(res.valid_uv, res.orientation, truth, shape)
-    assert s.coverage >= 0.25 and s.false_rate == 0.0, s
-    assert s.max_error <= 0.5 and s.rms <= 0.05, s
+    # Coverage: the plateau pass refuses a scan line where a checker edge lies under a
+    # rim or within the reach of its smoothing beyond it, ~30-45 of the ~60 scan lines
+    # between crossings of checker edges (measured 0.35-0.58 of the line over rolls -4,
+    # 4, 7 deg and offsets 0, 13, 26 px at 30-135 deg). The centres read from the
+    # plateau's flanks (step 4b) take most of them back, all but the scan lines with an
+    # edge within 2 px of both flanks' pixels: measured 0.83-0.84 here, 0.66-0.91 over
+    # those rolls and offsets. 0.6 keeps that with a margin.
+    assert s.coverage >= 0.6 and s.false_rate == 0.0, s
+    assert s.max_error <= _CLIPPED_MAX and s.rms <= _CLIPPED_RMS, s
     assert not extract_stripe(off).valid.any()
     # the single grey image: the capture reads the plateau against the target drawn from
-    # its points (measured coverage 0.29-0.37, RMS <= 0.035 px, at most 0.19 px off)
+    # its points (measured coverage 0.42-0.74 here, 0.29-0.44 before step 4b; RMS <=
+    # 0.032 px, at most 0.21 px off)
     found, opened, reason = find_target(on, None, board, single=True, min_points=10,
                                         mirrored=False)  # fmt: skip
     assert not reason, reason
@@ -420,8 +428,8 @@ def test_clipped_diagonal_line_on_checkerboard(angle):
                            stripe_width_px=None, margin_px=None, min_points=10,
                            note=lambda text: None)  # fmt: skip
     s = score_stripe(line.stripe_uv, line.stripe.orientation, truth, shape)
-    assert s.coverage >= 0.2 and s.false_rate == 0.0, s
-    assert s.max_error <= 0.5 and s.rms <= 0.05, s
+    assert s.coverage >= 0.3 and s.false_rate == 0.0, s
+    assert s.max_error <= _CLIPPED_MAX and s.rms <= _CLIPPED_RMS, s
 
 
 @pytest.mark.parametrize("angle", [45.0, 135.0])
@@ -439,10 +447,10 @@ def test_clipped_diagonal_line_on_a_fine_checkerboard(angle):
     on, off, truth, shape = _clipped_on_board(board, (4.2, 3.3), 0.7, 0.0, 0.3, angle, 0.0)
     res = extract_stripe(on, background=off)
     s = score_stripe(res.valid_uv, res.orientation, truth, shape)
-    # measured 0.79 (45 deg) and 0.81 (135 deg) of the line, 0.85 at 30 and 60 deg: the
+    # measured 0.79 (45 deg) and 0.80 (135 deg) of the line, 0.77 at 30 and 60 deg: the
     # rest are scan lines with an albedo edge within 2 px of both flanks' pixels (the
-    # blur's reach) or one flank's with no centre from both flanks nearby; 0.6 keeps
-    # the line found with a margin
+    # blur's reach), or of one with no centre from both flanks nearby; 0.6 keeps the
+    # line found with a margin
     assert s.coverage >= 0.6 and s.false_rate == 0.0, s
     assert s.max_error <= _CLIPPED_MAX and s.rms <= _CLIPPED_RMS, s
     assert not extract_stripe(off).valid.any()
