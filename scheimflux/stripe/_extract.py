@@ -30,7 +30,7 @@ from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
-from ._rims import bracketed, edge_spread, rim_centres
+from ._rims import ONE_SIDE_LINE, ONE_SIDE_REACH, bracketed, edge_spread, rim_centres
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -701,10 +701,14 @@ def _extract_track(
     if rim_job is not None and (rim_todo & ~valid).any():
         y_rim, one_side = rim_job(todo=rim_todo & ~valid)
         rim = np.isfinite(y_rim)
-        # one flank alone: only between centres of both flanks or of the plateau
+        # one flank alone: only between centres of both flanks or of the plateau, and on
+        # the straight line through them
         rim &= ~one_side | bracketed(one_side & rim, (valid | rim) & ~one_side)
-        rim_one = rim & one_side
         y_fit = np.where(rim, y_rim, y_fit)
+        anchor = (valid | rim) & ~one_side
+        pred, count = _local_line(np.where(anchor, y_fit, 0.0), anchor, ONE_SIDE_REACH)
+        rim &= ~one_side | ((count >= 6) & (np.abs(y_fit - pred) <= ONE_SIDE_LINE))
+        rim_one = rim & one_side
         valid |= rim
         saturated |= rim
     if background is None and channel.endswith("-minus-others") and valid.any():
