@@ -708,6 +708,10 @@ def _extract_track(
         anchor = (valid | rim) & ~one_side
         pred, count = _local_line(np.where(anchor, y_fit, 0.0), anchor, ONE_SIDE_REACH)
         rim &= ~one_side | ((count >= 6) & (np.abs(y_fit - pred) <= ONE_SIDE_LINE))
+        # and only between centres of the plateau: at the line's ends they would take
+        # the end trim of `link_segments` that the centres there need (a line's end
+        # pulls them: 0.14 px on a stage target's line)
+        rim = bracketed(rim, valid, shape[1])
         rim_one = rim & one_side
         valid |= rim
         saturated |= rim
@@ -766,19 +770,46 @@ def _extract_track(
         high=1.0 if track is not None else _HIGH,
         trim=int(math.ceil(2.0 * sigma_s)),
     )
-    # a long-ridge track has shown the line already (`path_track`): each segment on
-    # it is judged alone (the print can cut the line into pieces shorter than this)
-    segment, linked = link_segments(
-        y, valid, lines.strength / thr, **link,
-        min_line=min_pts if track is not None else min_line,
-    )  # fmt: skip
-    if track is None and not linked.any() and valid.any():
-        # no one segment spans `min_line`: the pieces of a line cut by the print (a
-        # clipped line refused where its plateau's rims straddle a checker edge) are
-        # the frame's line where they continue one another (`_chain_span`)
-        segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
-        if _chain_span(y, segment, jump, min_line) < min_line:
-            segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+
+    def linked_segments(valid):
+        # a long-ridge track has shown the line already (`path_track`): each segment on
+        # it is judged alone (the print can cut the line into pieces shorter than this)
+        segment, linked = link_segments(
+            y, valid, lines.strength / thr, **link,
+            min_line=min_pts if track is not None else min_line,
+        )  # fmt: skip
+        if track is None and not linked.any() and valid.any():
+            # no one segment spans `min_line`: the pieces of a line cut by the print (a
+            # clipped line refused where its plateau's rims straddle a checker edge) are
+            # the frame's line where they continue one another (`_chain_span`)
+            segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
+            if _chain_span(y, segment, jump, min_line) < min_line:
+                segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+        return segment, linked
+
+    rim &= valid
+    segment, linked = linked_segments(valid & ~rim)
+    if rim.any() and linked.any():
+        # The line stands without the flank centres (step 4b): its centres are those it
+        # has without them (the flank centres would join pieces the linking drops, and
+        # take the end trim that a line's ends need), and a flank centre is added only
+        # between its centres, on the straight line through them within +- 60 scan
+        # lines (within 3 robust spreads of theirs, at least 0.1 px; one flank alone
+        # 0.05 px).
+        pred, count = _local_line(np.where(linked, y_fit, 0.0), linked, 3 * ONE_SIDE_REACH)
+        r = np.abs(y_fit - pred)
+        own = linked & (count >= 6) & np.isfinite(r)
+        lim = max(0.1, 3.0 * 1.4826 * float(np.median(r[own]))) if own.any() else 0.1
+        lim = np.where(rim_one, min(lim, ONE_SIDE_LINE), lim)
+        add = bracketed(rim, linked, shape[1]) & (count >= 6) & (r <= lim)
+        idx = np.arange(shape[1])
+        prev = np.maximum.accumulate(np.where(linked, idx, 0))
+        segment = np.where(add, segment[prev], segment)
+        linked = linked | add
+        rim &= add
+    elif rim.any():  # the flank centres make the line (a board's edges cut it short)
+        segment, linked = linked_segments(valid)
+        rim &= linked
     # a centre read from one flank (step 4b) only between others of its linked segment
     linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
     segment = np.where(linked, segment, -1)
