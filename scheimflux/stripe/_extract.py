@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import math
 import os
 from collections.abc import Iterable
@@ -29,6 +30,7 @@ from ._longridge import LongRidge, long_ridge_track, path_track
 from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
+from ._rims import ONE_SIDE_LINE, ONE_SIDE_REACH, bracketed, edge_spread, rim_centres
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -173,8 +175,9 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
 def _signal(image, background, channel, width, normalise):
     """The 2-D signal image, the plain image whose clipping marks saturation, the
     channel used, the signal before the albedo normalisation (the signal itself
-    without one), the plain laser-off channel (None without one) and the colour
-    candidates in score order (the channel alone unless it was chosen)."""
+    without one), the plain laser-off channel and the denoised laser-off signal that
+    was subtracted (None and None without one) and the colour candidates in score
+    order (the channel alone unless it was chosen)."""
     img = as_image(image)
     if background is not None:
         off = as_image(background, name="background")
@@ -190,7 +193,7 @@ def _signal(image, background, channel, width, normalise):
     elif img.ndim == 2 and channel != "grey":
         raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
     sig, sat = channel_image(img, channel)
-    plain, off_level = sig, None
+    plain, off_level, base = sig, None, None
     if background is not None:
         base, level = channel_image(off, channel)
         base = _denoised(base.astype(np.float32))
@@ -198,7 +201,7 @@ def _signal(image, background, channel, width, normalise):
         off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
             sig = _albedo_normalised(sig, level.astype(np.float32))
-    return sig, sat, channel, plain, off_level, ranked
+    return sig, sat, channel, plain, off_level, base, ranked
 
 
 def _others_mean(image: Any, channel: str) -> np.ndarray:
@@ -446,7 +449,7 @@ def _extract_track(
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     asked = orientation
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel, unnormalised, off_level, ranked = _signal(
+    img, sat_img, channel, unnormalised, off_level, off_signal, ranked = _signal(
         image, background, channel, width, normalise_background
     )
     roi = as_mask(mask, img.shape)
@@ -584,6 +587,7 @@ def _extract_track(
     # right under a rim (a line along a narrow white strip between black ones, as on a
     # ChArUco board: a symmetric plateau 1 px off the line).
     first_pass = valid
+    rim_job = None  # step 4b, after the step fit
     saturated = clipped(lines, coarse.support)
     if saturated.any():
         cols = np.arange(shape[1])
@@ -650,6 +654,25 @@ def _extract_track(
                     3.0 * estimate_noise(off_level), shape[0],
                 )[0]  # fmt: skip
             valid &= ~saturated | even
+            if off_signal is not None and not channel.endswith("-minus-others"):
+                # Step 4b: the clipped scan lines refused above (a checker edge under the
+                # plateau or near a rim) that the step fit below does not recover either,
+                # read from the plateau's flanks, the albedo taken out by the laser-off
+                # level (`_rims.py`)
+                rim_todo = saturated & ~valid & coarse.support
+                if rim_todo.any() and (saturated & valid).sum() >= 8:
+                    rows_w = np.clip(
+                        row[None, :] + np.arange(-reach, reach + 1)[:, None], 0, shape[0] - 1
+                    )
+                    spread = edge_spread(off_signal, 3.0 * noise).reshape(-1)
+                    rim_job = functools.partial(
+                        rim_centres,
+                        gather(rows_w, cols, flat_sat).astype(np.float64),
+                        gather(rows_w, cols, off_signal.reshape(-1)).astype(np.float64),
+                        gather(rows_w, cols, spread).astype(np.float64),
+                        float(sat_level), row, reach, lines.y.copy(), saturated & valid,
+                        noise=noise, floor=3.0 * noise,
+                    )  # fmt: skip
             saturated &= valid
 
     # Width consistency: a line keeps its width along itself (blur across a Scheimpflug
@@ -674,6 +697,24 @@ def _extract_track(
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
+    rim = rim_one = np.zeros(shape[1], bool)
+    if rim_job is not None and (rim_todo & ~valid).any():
+        y_rim, one_side = rim_job(todo=rim_todo & ~valid)
+        rim = np.isfinite(y_rim)
+        # one flank alone: only between centres of both flanks or of the plateau, and on
+        # the straight line through them
+        rim &= ~one_side | bracketed(one_side & rim, (valid | rim) & ~one_side)
+        y_fit = np.where(rim, y_rim, y_fit)
+        anchor = (valid | rim) & ~one_side
+        pred, count = _local_line(np.where(anchor, y_fit, 0.0), anchor, ONE_SIDE_REACH)
+        rim &= ~one_side | ((count >= 6) & (np.abs(y_fit - pred) <= ONE_SIDE_LINE))
+        # and only between centres of the plateau: at the line's ends they would take
+        # the end trim of `link_segments` that the centres there need (a line's end
+        # pulls them: 0.14 px on a stage target's line)
+        rim = bracketed(rim, valid, shape[1])
+        rim_one = rim & one_side
+        valid |= rim
+        saturated |= rim
     if background is None and channel.endswith("-minus-others") and valid.any():
         # The laser's colour less the others holds albedo x laser light alone: an albedo
         # edge along the line, inside its profile (a marker's bit border), cuts the
@@ -729,19 +770,49 @@ def _extract_track(
         high=1.0 if track is not None else _HIGH,
         trim=int(math.ceil(2.0 * sigma_s)),
     )
-    # a long-ridge track has shown the line already (`path_track`): each segment on
-    # it is judged alone (the print can cut the line into pieces shorter than this)
-    segment, linked = link_segments(
-        y, valid, lines.strength / thr, **link,
-        min_line=min_pts if track is not None else min_line,
-    )  # fmt: skip
-    if track is None and not linked.any() and valid.any():
-        # no one segment spans `min_line`: the pieces of a line cut by the print (a
-        # clipped line refused where its plateau's rims straddle a checker edge) are
-        # the frame's line where they continue one another (`_chain_span`)
-        segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
-        if _chain_span(y, segment, jump, min_line) < min_line:
-            segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+
+    def linked_segments(valid):
+        # a long-ridge track has shown the line already (`path_track`): each segment on
+        # it is judged alone (the print can cut the line into pieces shorter than this)
+        segment, linked = link_segments(
+            y, valid, lines.strength / thr, **link,
+            min_line=min_pts if track is not None else min_line,
+        )  # fmt: skip
+        if track is None and not linked.any() and valid.any():
+            # no one segment spans `min_line`: the pieces of a line cut by the print (a
+            # clipped line refused where its plateau's rims straddle a checker edge) are
+            # the frame's line where they continue one another (`_chain_span`)
+            segment, linked = link_segments(y, valid, lines.strength / thr, **link, min_line=0)
+            if _chain_span(y, segment, jump, min_line) < min_line:
+                segment, linked = np.full_like(segment, -1), np.zeros_like(linked)
+        return segment, linked
+
+    rim &= valid
+    segment, linked = linked_segments(valid & ~rim)
+    if rim.any() and linked.any():
+        # The line stands without the flank centres (step 4b): its centres are those it
+        # has without them (the flank centres would join pieces the linking drops, and
+        # take the end trim that a line's ends need), and a flank centre is added only
+        # between its centres, on the straight line through them within +- 60 scan
+        # lines (within 3 robust spreads of theirs, at least 0.1 px; one flank alone
+        # 0.05 px).
+        pred, count = _local_line(np.where(linked, y_fit, 0.0), linked, 3 * ONE_SIDE_REACH)
+        r = np.abs(y_fit - pred)
+        own = linked & (count >= 6) & np.isfinite(r)
+        lim = max(0.1, 3.0 * 1.4826 * float(np.median(r[own]))) if own.any() else 0.1
+        lim = np.where(rim_one, min(lim, ONE_SIDE_LINE), lim)
+        add = bracketed(rim, linked, shape[1]) & (count >= 6) & (r <= lim)
+        idx = np.arange(shape[1])
+        prev = np.maximum.accumulate(np.where(linked, idx, 0))
+        segment = np.where(add, segment[prev], segment)
+        linked = linked | add
+        rim &= add
+    elif rim.any():  # the flank centres make the line (a board's edges cut it short)
+        segment, linked = linked_segments(valid)
+        rim &= linked
+    # a centre read from one flank (step 4b) only between others of its linked segment
+    linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
+    segment = np.where(linked, segment, -1)
     valid = linked
     saturated &= valid
     y = np.where(valid, y_fit, np.nan)
@@ -758,6 +829,8 @@ def _extract_track(
     confidence = np.where(
         refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
     )
+    # centres read from the plateau's flanks (step 4b): 0.5, a model reading too
+    confidence = np.where(rim, 0.5, confidence)
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),
