@@ -199,3 +199,35 @@ def test_cli_detect_nothing_found(tmp_path, capsys):
     assert not (tmp_path / "o.json").exists()
     assert main(argv + ["--out", str(tmp_path / "o.json"), "--scan", str(tmp_path)]) == 1
     assert "--delta-omega-deg" in capsys.readouterr().err
+
+
+def test_detection_does_not_depend_on_opencvs_random_state():
+    """`findChessboardCornersSB` samples with OpenCV's global random generator: on a hard
+    image (a clipped line at 135 degrees across the board, the scene of
+    test_stripe_capture.test_clipped_diagonal_line_on_checkerboard) it found the board
+    after some earlier OpenCV calls and not after others (unseeded: 6 of 8 repeated
+    calls; seeds 3, 4, 5 and 9 of 0-9 failed). Seeded attempts make the detection depend
+    on the image alone: the same corners, on the truth, whatever state OpenCV was in."""
+    from scheimflux.simulate import homography_map, render_capture
+
+    shape, board = (600, 800), Checkerboard(7, 5, 0.5)
+    base = homography_map(shape, board_size_mm=(5.0, 4.0), roll_deg=4.0, fill=0.8)
+
+    def to_pixel(xy):
+        return base(np.asarray(xy) + 1.0)
+
+    on, _ = render_capture(to_pixel, shape=shape, board=board, line_angle_deg=135.0,
+                           line_offset_px=13.0, peak=153.0, ambient=0.55, black=0.08,
+                           white=0.85, seed=3)  # fmt: skip
+    truth = to_pixel(board.points_mm[:, :2])
+    found = []
+    for state in (3, 4, 5, 9):  # seeds with which an unseeded search failed here
+        cv2.setRNGSeed(state)
+        res = detect_checkerboard(on, board)
+        assert res.found, res.message
+        found.append(res.corners_px)
+    for uv in found[1:]:
+        np.testing.assert_array_equal(uv, found[0])
+    # on the renderer's corners: the line crosses some (its light pulls them), so the
+    # bound is the capture's drop radius's order, not the clean board's 0.05 px
+    assert np.median(np.hypot(*(found[0] - truth).T)) < 0.05
