@@ -776,6 +776,21 @@ def windowed_median(values, ok, window):
     return out
 
 
+@_jit_inner
+def _flatnonzero(valid):
+    """`np.flatnonzero(valid)` written out (its generic version compiles slowly)."""
+    m = 0
+    for i in range(valid.size):
+        m += valid[i]
+    idx = np.empty(m, np.intp)
+    k = 0
+    for i in range(valid.size):
+        if valid[i]:
+            idx[k] = i
+            k += 1
+    return idx
+
+
 @_jit
 def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, trim, min_line):
     """`_link.link_segments` (labels, kept mask): one pass over the valid centres."""
@@ -783,15 +798,8 @@ def link_segments(y, valid, strength, max_jump_px, max_gap, min_points, high, tr
     labels = np.empty(n, np.intp)
     labels[:] = -1
     keep = np.zeros(n, np.bool_)
-    m = 0  # np.flatnonzero(valid), written out (its generic version compiles slowly)
-    for i in range(n):
-        m += valid[i]
-    idx = np.empty(m, np.intp)
-    k = 0
-    for i in range(n):
-        if valid[i]:
-            idx[k] = i
-            k += 1
+    idx = _flatnonzero(valid)
+    m = idx.size
     if m == 0:
         return labels, keep
     seg = np.empty(m, np.intp)
@@ -1066,15 +1074,8 @@ def cubic_seed(y, valid):
     summed here in order (BLAS may order the sums otherwise: the coefficients can differ
     in the last bits, which moves a centre across a threshold only by that much)."""
     n = y.size
-    m = 0
-    for i in range(n):
-        m += valid[i]
-    x = np.empty(m, np.intp)
-    k = 0
-    for i in range(n):
-        if valid[i]:
-            x[k] = i
-            k += 1
+    x = _flatnonzero(valid)
+    m = x.size
     mean = 0.0
     for i in range(m):
         mean += x[i]
