@@ -14,6 +14,7 @@ import pytest
 
 from scheimflux.calibrate._gates import (
     REJECT_SIGMA,
+    Quality,
     axis_point_gate,
     excess_kurtosis,
     outlier_masks,
@@ -98,6 +99,19 @@ def test_excess_kurtosis_of_known_distributions():
     assert tails_gate("corner", rng.standard_normal(5000)).passed
     assert not tails_gate("corner", rng.laplace(size=5000)).passed  # RMS √2 σ
     assert tails_gate("corner", 0.1 * rng.laplace(size=5000)).passed  # within the noise
+
+
+def test_a_passed_gate_beyond_its_limit_says_why():
+    """A tails gate that passes only because the residuals are within the stated noise
+    shows its value above the limit: the summary must say why it still passed."""
+    rng = np.random.default_rng(4)
+    quiet = tails_gate("stripe", 0.1 * rng.laplace(size=5000))
+    assert quiet.passed and quiet.value > quiet.limit
+    assert "within the stated noise" in quiet.message and "0.1" in quiet.message
+    plain = tails_gate("stripe", rng.standard_normal(5000))
+    assert plain.passed and plain.message == ""
+    lines = Quality(gates=(quiet, plain), rejected={}).summary().splitlines()
+    assert "within the stated noise" in lines[1] and lines[2].endswith("excess kurtosis)")
 
 
 def test_rms_and_axis_point_gates():

@@ -46,7 +46,8 @@ _EDGE = 0.5
 
 @dataclasses.dataclass(frozen=True)
 class Gate:
-    """One quality check: `value` against `limit` (`unit`), and what to do if it fails."""
+    """One quality check: `value` against `limit` (`unit`); `message` says what to do if
+    it failed, or why it passed where `value` is beyond `limit` (else it is empty)."""
 
     name: str
     passed: bool
@@ -112,6 +113,7 @@ class Quality:
             *(
                 f"  {'ok  ' if g.passed else 'FAIL'} {g.name:<13} {g.value:.4g} "
                 f"(limit {g.limit:.4g} {g.unit})"
+                + (f"; {g.message}" if g.passed and g.message else "")
                 for g in self.gates
             ),
             "  left out: outside the sensor "
@@ -369,7 +371,11 @@ def tails_gate(name: str, r: np.ndarray) -> Gate:
     rms = float(np.sqrt(np.mean(r**2))) if r.size else 0.0
     ok = bool(k <= limit or rms <= 1.0)
     msg = (
-        ""
+        (
+            ""
+            if k <= limit
+            else f"passed: heavy tails within the stated noise (residual RMS {rms:.2g} σ)"
+        )
         if ok
         else f"{name} residuals are heavy-tailed after the rejection pass (excess kurtosis "
         f"{k:.3g} > {limit:.3g}): outliers or a model error remain; check the detections "
