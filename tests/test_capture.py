@@ -222,6 +222,26 @@ def _scene_at(cam, target, frac, rot=183.0):
     return rig, truth, to_px(target.points_mm[:, :2])
 
 
+def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
+    """`stripe_on_board=True`: the pair layout's stripe image is the plain one times the
+    board's albedo (the board image of the same pose, noise-free), within 2 grey levels
+    (three 8-bit roundings of at most half a level each, scaled by at most 1); the
+    default is the plain surface (the line as bright on the dark print as on the white:
+    where the albedo is below 0.5, the two differ by far more)."""
+    target = Checkerboard(7, 6, 0.2)
+    rig, truth, _ = _scene(cam, target)
+    kw = dict(layout="pair", noise_sigma=0.0, seed=1)
+    write_scene_images(tmp_path / "plain", rig, target, truth, **kw)
+    write_scene_images(tmp_path / "board", rig, target, truth, stripe_on_board=True, **kw)
+    plain = cv2.imread(str(tmp_path / "plain" / "view_0_stripe.png"), cv2.IMREAD_UNCHANGED)
+    on = cv2.imread(str(tmp_path / "board" / "view_0_stripe.png"), cv2.IMREAD_UNCHANGED)
+    albedo = cv2.imread(str(tmp_path / "plain" / "view_0_board.png"), cv2.IMREAD_UNCHANGED)
+    expect = plain.astype(np.float64) * albedo / 255.0
+    assert np.abs(on - expect).max() <= 2.0
+    dark = (albedo < 0.5 * 255) & (plain > 100)  # the line over the dark print
+    assert dark.sum() > 100 and np.all(plain[dark] - on[dark] > 50)
+
+
 def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):
     # `laser_peak` is the line's peak on a white surface as a fraction of full scale: the
     # image is albedo × (ambient + laser_peak × line), so (on − off) / off × ambient, where
