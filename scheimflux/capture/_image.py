@@ -38,6 +38,7 @@ __all__ = ["ImageLine", "find_target", "line_and_points"]
 # out of the drawn laser-off image's level fit: a line clipped 150-fold on white (a
 # plateau of ~14 px for 5 px) falls to the noise ~2 FWHM from its centre.
 _LINE_REACH_FWHM = 6.0
+_BGR = {"blue": 0, "green": 1, "red": 2}
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -239,6 +240,13 @@ def line_and_points(
     if not shared:
         return out
     hit = moved if grey else off_local_grid(target, corners)
+    base = getattr(out.stripe, "channel", "grey").removesuffix("-minus-others")
+    if not grey and base in _BGR and np.ndim(image) == 3:
+        # a clipped colour line's own pixels in its plain channel: where the line is, even
+        # where the extractor refuses its centres (an albedo edge along a clipped line)
+        clip = clipped_pixels(image[:, :, _BGR[base]], mask, 0.25 * _pitch_px(corners))
+        if len(clip):
+            hit |= near_laser(target, corners, clip, w5, join=False, extra_px=JPEG_BLOCK_PX)
     if len(out.stripe_uv):
         w = out.stripe.width[ok]
         w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0

@@ -27,10 +27,12 @@ import cv2
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from ._render_stripe import render_stripe
+from ._render_stripe import _ambient as _ambient_field, render_stripe
 from ._render_target import render_target
 
 __all__ = ["write_scene_images"]
+
+_STRIPE_PEAK = 0.6  # the stripe images' laser peak on white (`render_stripe`'s default)
 
 
 def _board_to_pixel(rig, pose):
@@ -125,6 +127,7 @@ def write_scene_images(
     noise_sigma: float = 0.004,
     blur_sigma_px: float = 0.8,
     seed: int = 0,
+    stripe_on_board: bool = False,
     overwrite: bool = False,
     verbose: bool = False,
 ) -> list[str]:
@@ -151,6 +154,11 @@ def write_scene_images(
     - `noise_sigma`: additive Gaussian noise, fraction of full scale.
     - `blur_sigma_px`: Gaussian blur of the board images (px).
     - `seed`: seed of the noise (each image gets its own stream).
+    - `stripe_on_board`: the pair layout's stripe images on the board's albedo, as a
+      laser-only exposure of the printed board sees it: `albedo x (ambient + 0.6 x
+      line)` (the `ambient` field and the stripe's peak as on a plain surface), so the
+      line is dimmer on the dark print and the print shows faintly; False (default): on
+      a plain surface (albedo 1).
     - `overwrite`: replace existing files; otherwise any existing target raises
       `FileExistsError` before anything is written.
 
@@ -227,6 +235,23 @@ def write_scene_images(
                 else:
                     c = lit + albedo * float(laser_peak) * laser
                     img = _quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth)
+        elif kind == "stripe" and stripe_on_board:
+            f = _board_to_pixel(rig, truth.board_poses[k])
+            albedo = render_target(
+                board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
+            ) / 65535.0  # fmt: skip
+            laser = _stripe_image(
+                shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
+                ambient=0.0, noise_sigma=0.0, saturate=False, bit_depth=8, seed=s,
+            ) / 255.0  # fmt: skip
+            lit = albedo * _ambient_field(ambient, shape)
+            line = albedo * _STRIPE_PEAK * laser
+            rng = np.random.default_rng(s)
+            chans = [lit, lit, lit + line] if colour else [lit + line]
+            img = np.dstack(
+                [_quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth) for c in chans]
+            )  # fmt: skip
+            img = img if colour else img[:, :, 0]
         else:
             pts = truth.stripe_px[k] if kind == "stripe" else truth.scan_px[k]
             img = _stripe_image(shape, pts, seed=s, **stripe_kw)

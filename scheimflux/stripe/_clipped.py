@@ -79,3 +79,51 @@ def plain_surroundings(left, right, ok, reach, floor):
         lo = np.min(np.where(np.isfinite(win), win, np.inf), axis=1)
         out &= (count >= reach) & (hi - lo <= RIM_RATIO_MAX)
     return out & ok
+
+
+def profile_reach(gather, y, n_rows, max_reach, frac=0.1):
+    """(W,) how far (px, along the scan lines) the profile about each centre `y` of the
+    signal `gather` reads stays above `frac` of its peak (the largest value within 2 px
+    of the centre), the farther of its two sides; at most `max_reach`."""
+    cols = np.arange(y.size)
+    row = np.rint(np.nan_to_num(y, nan=0.0)).astype(np.intp)
+    offs = np.arange(-max_reach, max_reach + 1)
+    rows = np.clip(row[None, :] + offs[:, None], 0, n_rows - 1)
+    prof = gather(rows, cols).astype(np.float64)
+    peak = prof[np.abs(offs) <= 2].max(axis=0)
+    above = prof >= frac * peak[None, :]
+    reach = np.zeros(y.size, np.intp)
+    for side in (offs < 0, offs > 0):
+        idx = np.abs(offs[side])
+        # the first offset on this side below the fraction (max_reach + 1: none)
+        below = ~above[side]
+        order = np.argsort(idx)
+        first = np.where(below[order].any(0), idx[order][np.argmax(below[order], 0)],
+                         max_reach + 1)  # fmt: skip
+        reach = np.maximum(reach, first)
+    return np.minimum(reach, max_reach)
+
+
+def sides_even(gather, flat, y, start, reach, floor, n_rows, ratio_max):
+    """Scan lines whose level in `flat` (read by `gather`), averaged over the samples a
+    pixel apart from `start` to `reach` (per scan line) px on each side of the centre
+    `y` (linearly interpolated, symmetric about it), is the same on both sides within
+    `ratio_max` in log (levels under `floor` count as `floor`)."""
+    cols = np.arange(y.size)
+    yc = np.nan_to_num(y, nan=0.0)
+    n = int(max(np.max(reach - start), 0)) + 1
+    off = start + np.arange(n)[:, None] * np.ones(y.size)[None, :]
+    use = off <= np.maximum(reach, start)[None, :]
+
+    def level(pos):
+        lo = np.floor(pos)
+        f = pos - lo
+        lo = np.clip(lo.astype(np.intp), 0, n_rows - 2)
+        v = (1 - f) * gather(lo, cols, flat) + f * gather(lo + 1, cols, flat)
+        return np.sum(np.where(use, v, 0.0), axis=0) / np.maximum(use.sum(axis=0), 1)
+
+    left, right = level(yc[None, :] - off), level(yc[None, :] + off)
+    far = start + n - 1
+    inside = (yc - far >= 0) & (yc + far <= n_rows - 1)
+    ratio = np.abs(np.log(np.maximum(left, floor) / np.maximum(right, floor)))
+    return inside & np.isfinite(y) & (ratio <= ratio_max)

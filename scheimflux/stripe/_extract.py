@@ -22,7 +22,14 @@ import numpy as np
 from . import _fast
 from ._centroid import centroid_band
 from ._channel import ranked_channels
-from ._clipped import RIM_FLOOR, plain_surroundings, profile_std, rims_even
+from ._clipped import (
+    RIM_FLOOR,
+    plain_surroundings,
+    profile_reach,
+    profile_std,
+    rims_even,
+    sides_even,
+)
 from ._coarse import FACTOR, coarse_track, downsample
 from ._image import CHANNELS, _median, as_image, block_noise, channel_image, estimate_noise
 from ._link import consistent, link_segments
@@ -56,6 +63,10 @@ MIN_LINE_FRACTION = 0.05
 # crossings of checker edges (their centres: 0.042 px RMS with the test, 0.039 without,
 # on `render_capture`'s colour checkerboard at 15 degrees; 0.15 refused 11 % of them).
 ALBEDO_EVEN_MAX = 0.5
+# ... for a clipped profile (colour, no laser-off image): the albedo is read out to
+# where the profile falls under this fraction of its peak (the farther side), one pixel
+# beyond (see step 3b in docs/stripe.md).
+CLIPPED_PROFILE_FRAC = 0.1
 # Scan lines on each side over which `_noise_along` pools the noise beside a line.
 _NOISE_POOL = 15
 # Lowest ratio of that noise to the frame's estimate.
@@ -589,6 +600,7 @@ def _extract_track(
     first_pass = valid
     rim_job = None  # step 4b, after the step fit
     saturated = clipped(lines, coarse.support)
+    plateau = np.zeros(shape[1], np.intp)  # clipped pixels about the track, per scan line
     if saturated.any():
         cols = np.arange(shape[1])
         row = np.clip(np.rint(coarse.centre).astype(np.intp), 0, shape[0] - 1)
@@ -715,6 +727,7 @@ def _extract_track(
         rim_one = rim & one_side
         valid |= rim
         saturated |= rim
+    albedo_refused, albedo_bad = False, np.zeros(shape[1], bool)
     if background is None and channel.endswith("-minus-others") and valid.any():
         # The laser's colour less the others holds albedo x laser light alone: an albedo
         # edge along the line, inside its profile (a marker's bit border), cuts the
@@ -724,15 +737,40 @@ def _extract_track(
         # where it is about the same on both sides of the line (`rims_even`: the means of
         # 5 samples a pixel apart from 0.1 FWHM out differ by at most `ALBEDO_EVEN_MAX`
         # in log; levels under 5 % of the bright print count as 5 %).
+        # A clipped profile (a clipped pixel within its reach) reaches farther: its
+        # plateau is the full scale less albedo x room light, and its rims and flanks
+        # lie where albedo x (room light + laser) crosses the full scale, farther out
+        # over the brighter albedo. An albedo edge along the line anywhere out to its
+        # rims pulls the centre towards the brighter side while the profile stays
+        # symmetric in shape (a 153-fold clipped 5 px line with a checker edge 6 px
+        # from it: 0.65 px off the exact line at an asymmetry of 0.001). Its albedo is
+        # read from 0.1 FWHM out to one pixel beyond where the signal falls under
+        # `CLIPPED_PROFILE_FRAC` of its peak on the farther side (`profile_reach`,
+        # `sides_even`), every pixel of it.
         others = _others_mean(image, channel)
         flat_o = others.reshape(-1)
         level = float(np.percentile(others, 99))
+        floor_o = max(3.0 * estimate_noise(others), RIM_FLOOR * level)
         even, _, _ = rims_even(
-            gather, flat_o, y_fit, np.zeros(shape[1]), lines.ny, 0.1 * width,
-            max(3.0 * estimate_noise(others), RIM_FLOOR * level), shape[0],
-            ratio_max=ALBEDO_EVEN_MAX,
+            gather, flat_o, y_fit, np.zeros(shape[1]), lines.ny, 0.1 * width, floor_o,
+            shape[0], ratio_max=ALBEDO_EVEN_MAX,
         )  # fmt: skip
-        valid &= even | saturated
+        clipped_profile = saturated | (plateau > 0)
+        far = None
+        if clipped_profile.any():
+            far = profile_reach(gather, y_fit, shape[0], int(math.ceil(3.0 * width)),
+                                CLIPPED_PROFILE_FRAC) + 1  # fmt: skip
+            even_far = sides_even(gather, flat_o, y_fit, 0.1 * width, far, floor_o, shape[0],
+                                  ALBEDO_EVEN_MAX)  # fmt: skip
+            even = np.where(clipped_profile, even_far, even)
+        # a line found and refused here is the frame's line: no other channel or track
+        # is searched for one (the plain colour or a long ridge would give its pulled
+        # centres, or the print's)
+        albedo_bad = valid & ~even
+        albedo_refused = bool(albedo_bad.any())
+        # (a clipped centre refused here still joins the linking, see below)
+        valid &= even | clipped_profile
+        albedo_bad &= clipped_profile
     x = np.arange(shape[1], dtype=np.float64)
     y = np.where(valid, y_fit, np.nan)
     if roi is not None and valid.any():
@@ -812,6 +850,10 @@ def _extract_track(
         rim &= linked
     # a centre read from one flank (step 4b) only between others of its linked segment
     linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
+    # the centres the albedo test refused (colour, no laser-off image) are part of the
+    # line while it is linked (a line along a column of checker edges is refused over
+    # long stretches, and its pieces alone would be too short to count as a line)
+    linked &= ~albedo_bad
     segment = np.where(linked, segment, -1)
     valid = linked
     saturated &= valid
@@ -842,7 +884,7 @@ def _extract_track(
         confidence=np.where(valid, confidence, 0.0),
         segment=segment,
         **extra,
-    ), (None if valid.any() else retry)
+    ), (None if valid.any() or albedo_refused else retry)
 
 
 def extract_stripes(
