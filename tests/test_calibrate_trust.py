@@ -132,6 +132,11 @@ def test_uncertainty_of_every_free_parameter_is_reported(clean):
     doc = d.to_dict()
     assert set(doc["std"]) >= {"camera.e", "camera.z0", "plane.n[2]"}
     json.dumps(doc)  # JSON-ready
+    # both report the calibration's own coverage (the summary printed "unknown" beside
+    # the coverage line while the calibration had one)
+    assert clean.coverage is not None
+    assert d.coverage == ref.coverage == clean.coverage.fraction
+    assert f"{100 * clean.coverage.fraction:.0f} %" in d.summary()
 
 
 @pytest.mark.slow

@@ -104,6 +104,7 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
         null_directions=nulls,
         warnings=warnings,
         frozen=tuple(cal.freeze),
+        coverage=getattr(getattr(cal, "coverage", None), "fraction", None),
     )
 
 
