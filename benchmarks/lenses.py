@@ -220,7 +220,7 @@ def _logged(log, rec):
     with open(log) as fh:
         for line in fh:
             r = json.loads(line)
-            if all(r.get(k) == rec[k] for k in key):
+            if all(r.get(k) == rec.get(k) for k in key):
                 found = r
     return found
 

@@ -193,8 +193,10 @@ def calibrate_camera(
     - `obs`: observations (corners per view, board geometry, sensor); at least 3 views,
       each with 6 or more detected corners.
     - `model`: `"thick-lens"` (paper eq. 12), `"thick-lens-noncentral"` (the thick
-      lens with the entrance pupil moving along the axis with the field,
-      `ThickLensNonCentral`; solved from the central optimum), `"pinhole"` (eq. 14) or
+      lens with the entrance pupil moving along the axis with the field and its
+      projection centre offset across it, `ThickLensNonCentral`; solved from the
+      central optimum, the four terms kept only where an F-test finds them
+      significant), `"pinhole"` (eq. 14) or
       `"opencv"`
       (OpenCV's camera, see `opencv_flags`).
     - `distortion`: `"radial-tangential"` (k1, k2, k3, p1, p2), `"division"` or
