@@ -6,8 +6,8 @@ that moves with the field angle (pupil aberration): for a short wide-angle lens 
 finite conjugates this spread reaches a tenth of a millimetre, and a central model then
 misplaces points off the plane it was calibrated on. This model keeps every part of
 `ThickLensScheimpflug` (sensor, tilt, Newton's formula, distortion in the untilted image
-plane) for the ray's *direction* and lets its *origin* slide along the axis, and
-across it:
+plane) for the pixel's in-focus point and lets the ray's *origin* slide along the axis,
+and across it:
 
     origin = (ax, ay, Δz(ρ²)),   Δz(ρ²) = c1 ρ² + c2 ρ⁴,   ρ² = |ξ_u|²,
     direction ∥ P − (ax, ay, 0),
@@ -20,14 +20,14 @@ ray passes through its in-focus point, shifted by `Δz` like the origin, and thr
 offset centre. With `c1 = c2 = ax = ay = 0` it is exactly the paper's model; with
 `ax = ay = 0` it is the model with the axial pupil shift alone (the same arithmetic).
 
-Why a lateral offset: a sensor records the centroid of each point's bundle, and on a
-tilted sensor a defocused bundle's centroid moves towards the tilt in proportion to the
-defocus (the cone meets the tilted plane at an obliquity that varies across it). The
-object points that image to one pixel then lie on the chief ray turned about its
-in-focus point by about one small angle over the whole field: lines that pass the axis
-at a lateral distance instead of meeting it. Measured with `simulate._pupil` on the
-8 mm Tessar at ×0.5: 150–210 µrad, ~4.5 µm from the axis, towards the tilt; the chief
-rays meet the axis to rounding. A model whose rays meet the axis can only imitate it
+Why a lateral offset: a sensor records the centroid of each point's bundle. Measured
+with `simulate._pupil` on the 8 mm Tessar at ×0.5 (`benchmarks/raxels.py`), the object
+points that image to one unvignetted pixel lie on a line turned from the chief ray by
+56–265 µrad that passes the axis at up to ~4.6 µm instead of meeting it (the chief rays
+meet it to rounding), as if the projection centre sat ~4.5 µm off the axis, on the side
+of the sensor tilt. (The likely mechanism, not separately measured: a defocused cone
+meets the tilted sensor at an obliquity that varies across it, so its centroid moves
+with the defocus.) A model whose rays meet the axis can only imitate it
 with its tilt and axis point (docs/noncentral.md).
 
 Back-projection (pixel → ray) is closed form given the undistortion. Projection
@@ -59,18 +59,17 @@ _SHIFT_STEPS = 6
 _SHIFT_TOL = {jnp.dtype(jnp.float64): 1e-12, jnp.dtype(jnp.float32): 1e-5}
 
 PUPIL_TERMS = ("c1", "c2")
-LATERAL_TERMS = ("ax", "ay")
 
 
 class ThickLensNonCentral(AbstractCamera):
     """Thick lens with a tilted sensor and a field-dependent entrance pupil.
 
-    The ray of a pixel has the direction of `ThickLensScheimpflug`'s ray (same fields,
-    same meaning) and starts on the optical axis at `z = c1 ρ² + c2 ρ⁴` (mm), `ρ` the
-    pixel's undistorted normalised radius in the untilted image plane, offset across the
-    axis by `lateral = [ax, ay]` (mm), and passes through the pixel's in-focus point
-    shifted by the same `Δz` (see the module docstring). `pupil = [c1, c2]` (mm);
-    `pupil` and `lateral` zero give the paper's central model.
+    The ray of a pixel (with `lateral` 0) has the direction of `ThickLensScheimpflug`'s
+    ray (same fields, same meaning) and starts on the optical axis at `z = c1 ρ² + c2 ρ⁴`
+    (mm), `ρ` the pixel's undistorted normalised radius in the untilted image plane;
+    `lateral = [ax, ay]` (mm) moves the start across the axis, and the ray then passes
+    through the pixel's in-focus point shifted by the same `Δz` (module docstring).
+    `pupil = [c1, c2]` (mm); `pupil` and `lateral` zero give the paper's central model.
 
     **Fields:** those of `ThickLensScheimpflug` (`f`, `e`, `z0`, `phi`, `theta`, `x0`,
     `y0`, `dx`, `dy`, `distortion`), `pupil` (shape (2,), mm) and `lateral` (shape (2,),
