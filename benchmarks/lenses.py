@@ -2,7 +2,8 @@
 
     python benchmarks/lenses.py [--quick] [--lenses tessar,double-gauss] [--mags 0.5,1,2]
                                 [--seeds 3] [--models thick-lens,thick-lens-noncentral,opencv]
-                                [--imaging centroid] [--cache DIR] [--json FILE [--resume]]
+                                [--imaging centroid] [--max-radius-px R]
+                                [--cache DIR] [--json FILE [--resume]]
     python benchmarks/calibrate.py --lenses [LIST] [--quick] ...   (the same table)
 
 For each shipped lens (singlet, achromat, double-gauss, tessar) and magnification |β|
@@ -25,7 +26,11 @@ error of their distances, in µm, median over the seeds. Two figures: over the p
 inside the convex hull of all detected corners ("covered": where the calibration has
 data; the table's main number) and over the whole grid (in brackets: the sensor's
 corners, where every model extrapolates its distortion polynomial). A calibration that
-fails is NaN, never left out silently. `--quick`: tessar, ×0.5, one seed. `--cache`
+fails is NaN, never left out silently. `--max-radius-px R` drops the corners and
+stripe pixels farther than R px from the sensor's centre before calibrating (the
+vignetted outer field, where a pupil-centroid pixel is not the image of one ray:
+docs/noncentral.md); the grid is not cut, so "covered" is then the hull of the corners
+kept. `--quick`: tessar, ×0.5, one seed. `--cache`
 keeps each seed's observations and the grid; `--json` logs one line per calibration, and
 `--resume` takes the calibrations already logged there (so parts of the table can run
 in separate processes and be joined).
@@ -182,6 +187,25 @@ def _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache):
     return obs
 
 
+def within_radius(obs, radius_px: float | None):
+    """`obs` without the corners (NaN) and stripe pixels farther than `radius_px` from the
+    sensor's centre; `obs` itself when `radius_px` is None."""
+    import dataclasses
+
+    if radius_px is None:
+        return obs
+    c = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+    views = []
+    for v in obs.views:
+        cp = np.array(v.corners_px, dtype=float)
+        with np.errstate(invalid="ignore"):
+            cp[np.linalg.norm(cp - c, axis=1) > radius_px] = np.nan
+        sp = np.array(v.stripe_px, dtype=float).reshape(-1, 2)
+        sp = sp[np.linalg.norm(sp - c, axis=1) <= radius_px]
+        views.append(dataclasses.replace(v, corners_px=cp, stripe_px=sp))
+    return dataclasses.replace(obs, views=views)
+
+
 def _median(v) -> float:
     v = np.asarray(v, dtype=float)
     return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
@@ -191,18 +215,18 @@ def _logged(log, rec):
     """The last record of `log` (JSON lines) for the same lens, |β|, seed, imaging and model."""
     if not log or not os.path.exists(log):
         return None
-    key = ("lens", "mag", "seed", "imaging", "model")
+    key = ("lens", "mag", "seed", "imaging", "model", "max_radius_px")
     found = None
     with open(log) as fh:
         for line in fh:
             r = json.loads(line)
-            if all(r.get(k) == rec[k] for k in key):
+            if all(r.get(k) == rec.get(k) for k in key):
                 found = r
     return found
 
 
 def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=None, log=None,
-              resume=False):  # fmt: skip
+              resume=False, max_radius_px=None):  # fmt: skip
     """One lens × magnification: per model the medians over the seeds of the error on the
     covered part of the laser plane and on the full-sensor grid, and the flags."""
     lens = load_lens(lens_name)
@@ -223,11 +247,14 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
     errs = {m: dict(covered=[], full=[]) for m in models}
     flags = {m: "" for m in models}
     for seed in seeds:
-        obs = _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache)
+        obs = within_radius(_world_data(rig, lens_tag, mag, seed, imaging, sampling, cache),
+                            max_radius_px)  # fmt: skip
         inside = _covered(obs, uv)
         for m in models:
             rec = dict(lens=lens_tag, mag=mag, seed=seed, imaging=imaging, model=m,
                        n_covered=int(inside.sum()), n_full=len(X))  # fmt: skip
+            if max_radius_px is not None:
+                rec.update(max_radius_px=max_radius_px)
             done = _logged(log, rec) if resume else None
             if done is not None:
                 errs[m]["covered"].append(done.get("covered_um", math.nan))
@@ -256,11 +283,13 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
                            reproj_px=cal.reprojection_rms_px)  # fmt: skip
                 pupil = getattr(cal.camera, "pupil", None)
                 if pupil is not None:
-                    rec.update(pupil_mm=[float(c) for c in np.asarray(pupil)])
+                    rec.update(pupil_mm=[float(c) for c in np.asarray(pupil)],
+                               lateral_mm=[float(c) for c in np.asarray(cal.camera.lateral)])
             print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: "
                   + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                               for k, v in rec.items() if k not in ("lens", "mag", "model",
-                                                                   "seed", "imaging")),
+                                                                   "seed", "imaging",
+                                                                   "max_radius_px")),
                   flush=True)  # fmt: skip
             if log:
                 with open(log, "a") as fh:
@@ -280,7 +309,9 @@ def table(args) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     print(
         f"{len(lenses)} lens(es) × {len(mags)} magnification(s), seeds {seeds}, imaging "
-        f"{args.imaging}, {args.rings} rings; load average {load:.1f}; "
+        f"{args.imaging}, {args.rings} rings"
+        + (f", corners within {args.max_radius_px:g} px" if args.max_radius_px else "")
+        + f"; load average {load:.1f}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n"
     )
     ref = "opencv" if "opencv" in models else None
@@ -299,7 +330,8 @@ def table(args) -> None:
         for mag in mags:
             t0 = time.perf_counter()
             res = run_world(name, mag, seeds, models, args.imaging, args.f_number,
-                            args.rings, args.cache, args.json, args.resume)  # fmt: skip
+                            args.rings, args.cache, args.json, args.resume,
+                            args.max_radius_px)  # fmt: skip
             row = f"{name:<14} {mag:>4g}"
             for m in models:
                 cov, full, flag = res[m]
@@ -323,6 +355,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--imaging", choices=("centroid", "chief"), default="centroid")
     ap.add_argument("--f-number", type=float, default=None, help="default: each lens's own")
     ap.add_argument("--rings", type=int, default=8, help="pupil quadrature rings")
+    ap.add_argument("--max-radius-px", type=float, default=None,
+                    help="drop corners and stripe pixels beyond this radius (px) from the "
+                         "sensor centre")  # fmt: skip
     ap.add_argument("--cache", metavar="DIR", help="keep/reuse each seed's observations here")
     ap.add_argument("--json", metavar="FILE", help="append one JSON line per calibration")
     ap.add_argument("--resume", action="store_true",

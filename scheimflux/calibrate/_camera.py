@@ -193,8 +193,10 @@ def calibrate_camera(
     - `obs`: observations (corners per view, board geometry, sensor); at least 3 views,
       each with 6 or more detected corners.
     - `model`: `"thick-lens"` (paper eq. 12), `"thick-lens-noncentral"` (the thick
-      lens with the entrance pupil moving along the axis with the field,
-      `ThickLensNonCentral`; solved from the central optimum), `"pinhole"` (eq. 14) or
+      lens with the entrance pupil moving along the axis with the field and its
+      projection centre offset across it, `ThickLensNonCentral`; solved from the
+      central optimum, the four terms kept only where an F-test finds them
+      significant), `"pinhole"` (eq. 14) or
       `"opencv"`
       (OpenCV's camera, see `opencv_flags`).
     - `distortion`: `"radial-tangential"` (k1, k2, k3, p1, p2), `"division"` or
@@ -302,11 +304,11 @@ def calibrate_camera(
         fit = least_squares(
             camera_residuals, start, data, freeze=freeze, max_steps=max_steps, throw=throw
         )
-        if "camera.pupil" not in freeze:
+        if _noncentral_free(freeze):
 
             def solve_held(p):
                 return least_squares(camera_residuals, p, data, freeze=freeze,
-                                     hold=("camera.pupil",), max_steps=max_steps,
+                                     hold=_noncentral_free(freeze), max_steps=max_steps,
                                      throw=throw)  # fmt: skip
 
             fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, freeze,
@@ -338,17 +340,28 @@ def _check_gauge(gauge, model, distortion, freeze) -> None:
         )
 
 
+#: The non-central camera's terms beyond the central thick lens: the pupil's axial shift
+#: (c1, c2) and the origin's lateral offset (ax, ay), tested and held together.
+NONCENTRAL_TERMS = ("camera.pupil", "camera.lateral")
+
+
+def _noncentral_free(freeze) -> tuple[str, ...]:
+    """The non-central terms the user did not freeze."""
+    return tuple(t for t in NONCENTRAL_TERMS if t not in freeze)
+
+
 def _pupil_kept_if_significant(central, fit, start, freeze, solve_held):
-    """The non-central solve's pupil terms if they reduce the corners' residuals by more
-    than noise would (`nested_f_test` against the central optimum), else
-    `solve_held(start)`: the solve with them held at zero (at run time: the same
-    compiled program; the central optimum is its start), and `camera.pupil` added to the
-    frozen set.
+    """The non-central solve's pupil terms (axial shift and lateral offset) if they reduce
+    the corners' residuals by more than noise would (`nested_f_test` against the central
+    optimum, q = 2 per free pair), else `solve_held(start)`: the solve with them held at
+    zero (at run time: the same compiled program; the central optimum is its start), and
+    them added to the frozen set.
 
     **Returns:** `(fit, freeze, notes)`; `notes` says what was decided and why.
     """
+    free = _noncentral_free(freeze)
     test = nested_f_test(2.0 * central.cost, 2.0 * fit.cost, fit.n_observations,
-                         len(fit.labels), 2)  # fmt: skip
+                         len(fit.labels), 2 * len(free))  # fmt: skip
     stat = f"F = {test.f:.3g}, p = {test.p_value:.2g}"
     if test.significant:
         return fit, freeze, (f"pupil terms kept: they reduce the corners' residuals "
@@ -359,7 +372,7 @@ def _pupil_kept_if_significant(central, fit, start, freeze, solve_held):
         f"better than the central one ({stat}, level {test.alpha:g}); the lens is central "
         "to the data's precision"
     )
-    return held, tuple(freeze) + ("camera.pupil",), (note,)
+    return held, tuple(freeze) + free, (note,)
 
 
 def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibration:
@@ -395,7 +408,7 @@ def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibrat
                              fit.params.board_poses)  # fmt: skip
         fit = solve(start)
         fit, freeze, notes = _pupil_kept_if_significant(
-            central, fit, start, freeze, lambda p: solve(p, AXIS_POINT + ("camera.pupil",))
+            central, fit, start, freeze, lambda p: solve(p, AXIS_POINT + NONCENTRAL_TERMS)
         )
     if throw and not fit.converged:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {fit.message}", fit)

@@ -45,6 +45,7 @@ _UNITS = {
     "camera.dx": "mm",
     "camera.dy": "mm",
     "camera.pupil": "mm",
+    "camera.lateral": "mm",
     "camera.alpha": "px",
     "camera.beta": "px",
     "camera.gamma": "px",

@@ -13,8 +13,15 @@ extra parameters and `d` = observations − free parameters of the full model,
     F = ((RSS₀ − RSS₁) / q) / (RSS₁ / d)
 
 is F(q, d)-distributed when the extra terms are zero and the residuals are Gaussian
-(the residuals' scale cancels: a wrong σ does not change the test). For q = 2, the case
-here, its tail is closed form: `P(F > f) = (1 + 2 f / d)^(−d/2)`.
+(the residuals' scale cancels: a wrong σ does not change the test). For even q its tail
+is closed form (the regularised incomplete beta function with an integer second
+argument): with `x = d / (d + q f)` and `a = d / 2`,
+
+    P(F > f) = x^a · Σ_{j < q/2} [Γ(a + j) / (Γ(a) j!)] (1 − x)^j,
+
+which for q = 2 is `(1 + 2 f / d)^(−d/2)`. The non-central camera tests its axial pupil
+terms (`c1`, `c2`) and its lateral offset (`ax`, `ay`) together: q = 4 (q = 2 where a
+user froze one pair).
 """
 
 from __future__ import annotations
@@ -51,7 +58,7 @@ def nested_f_test(
     rss_reduced: float, rss_full: float, n_observations: int, n_free_full: int, q: int,
     *, alpha: float = ALPHA,
 ) -> NestedTest:  # fmt: skip
-    """F-test of a full model with `q` = 2 more free parameters than the reduced one.
+    """F-test of a full model with `q` (even) more free parameters than the reduced one.
 
     **Arguments:** the residual sums of squares (weighted, `2 · Fit.cost`) of the
     reduced and the full model at their optima, the number of residuals, the full
@@ -60,8 +67,9 @@ def nested_f_test(
     **Returns:** a [`NestedTest`][]. A full fit that is worse than the reduced one (an
     optimiser that stopped early) gives `f = 0`, `p_value = 1`: not significant.
     """
-    if q != 2:
-        raise ValueError(f"the closed-form tail is for q = 2 extra parameters, got q = {q}")
+    if q < 2 or q % 2:
+        raise ValueError(f"the closed-form tail is for an even q >= 2 extra parameters, "
+                         f"got q = {q}")  # fmt: skip
     dof = int(n_observations) - int(n_free_full)
     if dof < 1:
         raise ValueError(f"no degrees of freedom left ({n_observations} residuals, "
@@ -77,5 +85,23 @@ def nested_f_test(
     elif math.isinf(f):
         p = 0.0
     else:
-        p = math.exp(-0.5 * dof * math.log1p(2.0 * f / dof))
+        p = _f_tail_even_q(f, q, dof)
     return NestedTest(float(f), float(p), int(q), dof, bool(p < alpha), float(alpha))
+
+
+def _f_tail_even_q(f: float, q: int, dof: int) -> float:
+    """`P(F(q, dof) > f)` for even `q` (module docstring), summed in logarithms."""
+    if q == 2:
+        return math.exp(-0.5 * dof * math.log1p(2.0 * f / dof))
+    a = 0.5 * dof
+    log_x = -math.log1p(q * f / dof)  # x = d / (d + q f)
+    one_minus_x = (q * f / dof) / (1.0 + q * f / dof)
+    if one_minus_x == 0.0:
+        return 1.0
+    log_1mx = math.log(one_minus_x)
+    terms = [
+        math.lgamma(a + j) - math.lgamma(a) - math.lgamma(j + 1.0) + j * log_1mx
+        for j in range(q // 2)
+    ]
+    top = max(terms)
+    return min(1.0, math.exp(a * log_x + top + math.log(sum(math.exp(t - top) for t in terms))))

@@ -6,16 +6,35 @@ that moves with the field angle (pupil aberration): for a short wide-angle lens 
 finite conjugates this spread reaches a tenth of a millimetre, and a central model then
 misplaces points off the plane it was calibrated on. This model keeps every part of
 `ThickLensScheimpflug` (sensor, tilt, Newton's formula, distortion in the untilted image
-plane) for the ray's *direction* and lets its *origin* slide along the axis:
+plane) for the pixel's in-focus point and lets the ray's *origin* slide along the axis,
+and across it:
 
-    origin = (0, 0, Δz(ρ²)),   Δz(ρ²) = c1 ρ² + c2 ρ⁴,   ρ² = |ξ_u|²,
+    origin = (ax, ay, Δz(ρ²)),   Δz(ρ²) = c1 ρ² + c2 ρ⁴,   ρ² = |ξ_u|²,
+    direction ∥ P − (ax, ay, 0),
 
 where `ξ_u` is the pixel's undistorted coordinate in the untilted image plane (the
-normalised image-side field, `z0 ξ_u` in mm on the plane `z = −z0`). With `c1 = c2 = 0`
-it is exactly the paper's model.
+normalised image-side field, `z0 ξ_u` in mm on the plane `z = −z0`), `P` the pixel's
+conjugate point on the plane of sharp focus (Newton's formula, as in the central model)
+and `(ax, ay)` (`lateral`, mm) an offset of the projection centre across the axis: the
+ray passes through its in-focus point, shifted by `Δz` like the origin, and through the
+offset centre. With `c1 = c2 = ax = ay = 0` it is exactly the paper's model; with
+`ax = ay = 0` it is the model with the axial pupil shift alone (the same arithmetic).
+
+Why a lateral offset: a sensor records the centroid of each point's bundle. Measured
+with `simulate._pupil` on the 8 mm Tessar at ×0.5 (`benchmarks/raxels.py`), the object
+points that image to one unvignetted pixel lie on a line turned from the chief ray by
+56–265 µrad that passes the axis at up to ~4.6 µm instead of meeting it (the chief rays
+meet it to rounding), as if the projection centre sat ~4.5 µm off the axis, on the side
+of the sensor tilt. (The likely mechanism, not separately measured: a defocused cone
+meets the tilted sensor at an obliquity that varies across it, so its centroid moves
+with the defocus.) A model whose rays meet the axis can only imitate it
+with its tilt and axis point (docs/noncentral.md).
 
 Back-projection (pixel → ray) is closed form given the undistortion. Projection
-(point → pixel) solves the scalar fixed point `s = Δz(ρ²(X − s e_z))`: the origin shift
+(point → pixel) solves the scalar fixed point `s = Δz(ρ²(X − o(s)))`, `o(s) = (ax, ay,
+s)`, where the pixel of a point seen from the offset centre is one 3×3 solve
+(`K_a = K_f − (ax, ay, 0) ⊗ w`, `w` the last row of the homogeneous pixel → object
+map: `K_a p̃ ∝ P − (ax, ay, 0)`): the origin shift
 changes the field of the shifted point by about `ρ s / Z` (Z the object distance, ~10²
 mm), so the map contracts by orders of magnitude per step. A fixed number of steps runs
 on constants; one Newton step at the fixed point carries the derivative (the implicit
@@ -45,13 +64,16 @@ PUPIL_TERMS = ("c1", "c2")
 class ThickLensNonCentral(AbstractCamera):
     """Thick lens with a tilted sensor and a field-dependent entrance pupil.
 
-    The ray of a pixel has the direction of `ThickLensScheimpflug`'s ray (same fields,
-    same meaning) and starts on the optical axis at `z = c1 ρ² + c2 ρ⁴` (mm), `ρ` the
-    pixel's undistorted normalised radius in the untilted image plane (see the module
-    docstring). `pupil = [c1, c2]` (mm); zero gives the paper's central model.
+    The ray of a pixel (with `lateral` 0) has the direction of `ThickLensScheimpflug`'s
+    ray (same fields, same meaning) and starts on the optical axis at `z = c1 ρ² + c2 ρ⁴`
+    (mm), `ρ` the pixel's undistorted normalised radius in the untilted image plane;
+    `lateral = [ax, ay]` (mm) moves the start across the axis, and the ray then passes
+    through the pixel's in-focus point shifted by the same `Δz` (module docstring).
+    `pupil = [c1, c2]` (mm); `pupil` and `lateral` zero give the paper's central model.
 
     **Fields:** those of `ThickLensScheimpflug` (`f`, `e`, `z0`, `phi`, `theta`, `x0`,
-    `y0`, `dx`, `dy`, `distortion`) and `pupil` (shape (2,), mm).
+    `y0`, `dx`, `dy`, `distortion`), `pupil` (shape (2,), mm) and `lateral` (shape (2,),
+    mm; default 0).
     """
 
     f: Float[Array, ""]
@@ -65,14 +87,17 @@ class ThickLensNonCentral(AbstractCamera):
     dy: Float[Array, ""]
     distortion: AbstractDistortion
     pupil: Float[Array, "2"]
+    lateral: Float[Array, "2"]
 
-    def __init__(self, f, e, z0, phi, theta, x0, y0, dx, dy, distortion=None, pupil=None):
+    def __init__(self, f, e, z0, phi, theta, x0, y0, dx, dy, distortion=None, pupil=None,
+                 lateral=None):  # fmt: skip
         self.f, self.e, self.z0 = (jnp.asarray(v, dtype=float) for v in (f, e, z0))
         self.phi, self.theta = (jnp.asarray(v, dtype=float) for v in (phi, theta))
         self.x0, self.y0 = (jnp.asarray(v, dtype=float) for v in (x0, y0))
         self.dx, self.dy = (jnp.asarray(v, dtype=float) for v in (dx, dy))
         self.distortion = NoDistortion() if distortion is None else distortion
         self.pupil = jnp.zeros(2) if pupil is None else jnp.asarray(pupil, dtype=float)
+        self.lateral = jnp.zeros(2) if lateral is None else jnp.asarray(lateral, dtype=float)
 
     def __check_init__(self):
         for name in ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy"):
@@ -83,12 +108,19 @@ class ThickLensNonCentral(AbstractCamera):
                 f"ThickLensNonCentral.pupil must have shape (2,) (c1, c2), "
                 f"got {jnp.shape(self.pupil)}"
             )
+        if jnp.shape(self.lateral) != (2,):
+            raise ValueError(
+                f"ThickLensNonCentral.lateral must have shape (2,) (ax, ay), "
+                f"got {jnp.shape(self.lateral)}"
+            )
 
     @classmethod
-    def from_central(cls, camera: ThickLensScheimpflug, pupil=None) -> ThickLensNonCentral:
-        """The non-central camera with `camera`'s parameters and `pupil` (default 0)."""
+    def from_central(cls, camera: ThickLensScheimpflug, pupil=None,
+                     lateral=None) -> ThickLensNonCentral:  # fmt: skip
+        """The non-central camera with `camera`'s parameters, `pupil` and `lateral`
+        (default 0)."""
         names = ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy")
-        return cls(*(getattr(camera, n) for n in names), camera.distortion, pupil)
+        return cls(*(getattr(camera, n) for n in names), camera.distortion, pupil, lateral)
 
     @property
     def central(self) -> ThickLensScheimpflug:
@@ -107,6 +139,16 @@ class ThickLensNonCentral(AbstractCamera):
     def c2(self) -> Float[Array, ""]:
         """The ρ⁴ coefficient of the pupil shift (mm)."""
         return self.pupil[1]
+
+    @property
+    def ax(self) -> Float[Array, ""]:
+        """The projection centre's offset across the axis, x (mm)."""
+        return self.lateral[0]
+
+    @property
+    def ay(self) -> Float[Array, ""]:
+        """The projection centre's offset across the axis, y (mm)."""
+        return self.lateral[1]
 
     @property
     def is_distorted(self) -> bool:
@@ -137,22 +179,34 @@ class ThickLensNonCentral(AbstractCamera):
         ok = ok & (jnp.sum(P * P) > 0)
         P = jnp.where(ok, P, jnp.zeros_like(P).at[2].set(1.0))
         xi = jnp.where(ok, xi, jnp.zeros_like(xi))
-        origin = jnp.zeros_like(P).at[2].set(self.pupil_shift(xi))
-        return Ray(origin, P / jnp.linalg.norm(P)), ok
+        origin = self._origin(self.pupil_shift(xi), P.dtype)
+        D = P - self._origin(jnp.zeros((), P.dtype), P.dtype)  # P − (ax, ay, 0)
+        ok = ok & (jnp.sum(D * D) > 0)
+        D = jnp.where(ok, D, jnp.zeros_like(D).at[2].set(1.0))
+        return Ray(origin, D / jnp.linalg.norm(D)), ok
 
     # --- point → pixel (convergence-checked scalar fixed point) -------------------------
     def _ideal(self, X: Float[Array, "3"]):
-        """Undistorted pixel of `X` seen from the origin, its field `ξ_u` and validity."""
+        """Undistorted pixel of the point `(ax, ay, 0) + X` seen from the offset centre
+        `(ax, ay, 0)` (its in-focus point on the line from the centre through it), its
+        field `ξ_u` and validity."""
         c = self.central
-        pix = jnp.linalg.solve(c.K_f, X)
+        M = c.pixel_to_object_matrix()
+        a = self._origin(jnp.zeros((), M.dtype), M.dtype)
+        K_a = M[:3] - a[:, None] * M[3][None, :]  # K_a p̃ ∝ P − (ax, ay, 0)
+        pix = jnp.linalg.solve(K_a, X)
         uv = pix[:2] / pix[2]
-        w = c.pixel_to_object_matrix()[3] @ _homogeneous(uv)
+        w = M[3] @ _homogeneous(uv)
         valid = (pix[2] * w > 0) & jnp.all(jnp.isfinite(uv))
         return uv, c._untilted(c.sensor_point(uv)), valid
 
+    def _origin(self, s, dtype) -> Float[Array, "3"]:
+        """The ray origin `(ax, ay, s)` for the axial shift `s`."""
+        return jnp.concatenate([self.lateral.astype(dtype), jnp.reshape(s, (1,)).astype(dtype)])
+
     def _shift_map(self, s, X):
-        """`F(s) = Δz(ρ²(X − s e_z))`: the origin shift the ray through X would need."""
-        _, xi, _ = self._ideal(X - jnp.zeros_like(X).at[2].set(s))
+        """`F(s) = Δz(ρ²(X − o(s)))`: the origin shift the ray through X would need."""
+        _, xi, _ = self._ideal(X - self._origin(s, X.dtype))
         return self.pupil_shift(xi)
 
     def solve_shift(self, X: Float[Array, "3"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
@@ -181,7 +235,7 @@ class ThickLensNonCentral(AbstractCamera):
 
     def project_one(self, X):
         s, ok = self.solve_shift(X)
-        Xs = X - jnp.zeros_like(X).at[2].set(s)
+        Xs = X - self._origin(s, X.dtype)
         uv, xi, valid = self._ideal(Xs)
         if self.is_distorted:
             uv = self.central._sensor_pixel(self.distortion.distort(xi))

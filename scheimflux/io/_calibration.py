@@ -26,8 +26,9 @@
 ```
 
 The non-central thick lens (`"model": "thick-lens-noncentral"`) has the thick lens's
-parameters and `c1`, `c2` (mm): the entrance pupil's shift along the axis,
-`c1 ρ² + c2 ρ⁴` (see `ThickLensNonCentral`). The pinhole model (paper eq. 14) has
+parameters, `c1`, `c2` (mm): the entrance pupil's shift along the axis,
+`c1 ρ² + c2 ρ⁴`, and `ax`, `ay` (mm): the ray origin's lateral offset (see
+`ThickLensNonCentral`; files without `ax`, `ay` load with 0). The pinhole model (paper eq. 14) has
 `alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
 `"distortion": {"model": "none"}`. OpenCV's model (`"model": "opencv"`, equal to
 `cv2.projectPoints`) has `fx`, `fy`, `cx`, `cy` (px), `tau_x`, `tau_y` (deg: the sensor

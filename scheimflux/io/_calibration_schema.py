@@ -35,7 +35,8 @@ CAMERA_PARAMETERS = {
         ("dx", "mm"),
         ("dy", "mm"),
     ),
-    # the thick lens and the entrance pupil's shift along the axis, c1 ρ² + c2 ρ⁴ (mm)
+    # the thick lens, the entrance pupil's shift along the axis, c1 ρ² + c2 ρ⁴ (mm), and
+    # the ray origin's lateral offset ax, ay (mm; optional on reading, 0 when absent)
     "thick-lens-noncentral": (
         ("f", "mm"),
         ("e", "mm"),
@@ -48,6 +49,8 @@ CAMERA_PARAMETERS = {
         ("dy", "mm"),
         ("c1", "mm"),
         ("c2", "mm"),
+        ("ax", "mm"),
+        ("ay", "mm"),
     ),
     "pinhole": (("alpha", "px"), ("beta", "px"), ("gamma", "px"), ("x0", "px"), ("y0", "px")),
     "opencv": (
@@ -199,11 +202,17 @@ def _parameter(d, name: str, unit: str, where: str) -> float:
     return math.radians(value) if unit == "deg" else value
 
 
+#: Camera parameters a file may leave out (added after files were written without them):
+#: the non-central lens's lateral offset, 0 when absent.
+_OPTIONAL_CAMERA = frozenset({"ax", "ay"})
+
+
 def _camera(doc: dict, model: str):
     cd = _object(_require(doc, "camera", ""), "camera")
     names = tuple(n for n, _ in CAMERA_PARAMETERS[model])
     _check_keys(cd, names + ("distortion",), "camera")
-    values = {n: _parameter(cd, n, u, "camera") for n, u in CAMERA_PARAMETERS[model]}
+    values = {n: _parameter(cd, n, u, "camera") for n, u in CAMERA_PARAMETERS[model]
+              if n in cd or n not in _OPTIONAL_CAMERA}  # fmt: skip
     dd = _object(_require(cd, "distortion", "camera"), "camera.distortion")
     dname = _require(dd, "model", "camera.distortion")
     allowed = _MODEL_DISTORTIONS[model]
@@ -219,6 +228,7 @@ def _camera(doc: dict, model: str):
     dist = _DISTORTION_CLASSES[dname](*coeffs)
     if model == "thick-lens-noncentral":
         values["pupil"] = (values.pop("c1"), values.pop("c2"))
+        values["lateral"] = (values.pop("ax", 0.0), values.pop("ay", 0.0))
     return _CAMERA_CLASSES[model](**values, distortion=dist), dname
 
 
