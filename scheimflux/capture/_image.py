@@ -199,17 +199,27 @@ def line_and_points(
         moved = off_local_grid(target, corners)
         if len(clip):
             moved |= near_laser(target, corners, clip, w5, join=False)
-    attempts = [(simg, None, off)]  # (signal image, holes, laser-off image)
+    # (signal image, holes, laser-off image, its gain); a pair's board image is the
+    # laser-off image of its stripe image, at its own exposure and room light
+    pair = not single and off is None and simg is not image
+    attempts = [(simg, None, off, 1.0)]
+    if pair:
+        ref = image
+        if np.ndim(image) == 3 and np.ndim(simg) == 2:  # a colour board image, a grey line
+            ref = image[:, :, :3].astype(np.float32).mean(axis=2)
+        attempts = [(simg, None, ref, "auto")]
     if grey and isinstance(target, CircleGrid):
         grow = _hole_margin(corners, target, stripe_width_px)
-        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow), None)]
+        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow), None, 1.0)]
         if opened is not None:
             # first the line alone: the image less its opening; where the line crosses a
             # dot's edge the opening leaves a notch, so no centre on a dot (grown by a line
             # width) is kept. The attempt that keeps more centres wins (a saturated line
             # can be refused in either)
             diff = image.astype(np.float32) - opened.astype(np.float32)
-            attempts.insert(0, (diff, target_holes(target, corners, shape, margin_px=w5), None))
+            attempts.insert(
+                0, (diff, target_holes(target, corners, shape, margin_px=w5), None, 1.0)
+            )
     elif grey and len(clip):
         # a clipped line on a printed pattern: its plateau's rims are read against the
         # pattern drawn from the points the line has not moved (`laser_off_model`), as
@@ -219,20 +229,21 @@ def line_and_points(
         model = laser_off_model(image, target, drawn, mask, clip, reach_px=_LINE_REACH_FWHM * w5,
                                 noise=estimate_noise(image))  # fmt: skip
         if model is not None:
-            attempts = [(simg, None, model), (simg, None, None)]
+            attempts = [(simg, None, model, 1.0), (simg, None, None, 1.0)]
     ok = None
-    for signal, holes, background in attempts:
+    for signal, holes, background, gain in attempts:
         try:
             res_i, inside = board_stripe(
-                signal, mask, width_px=stripe_width_px, background=background, holes=holes
-            )
+                signal, mask, width_px=stripe_width_px, background=background, holes=holes,
+                background_gain=gain,
+            )  # fmt: skip
         except ValueError as err:
             note(f"no stripe extracted: {err}")
             continue
         ok_i = res_i.valid & inside
         if out.stripe is None or ok_i.sum() > len(out.stripe_uv):
             out.stripe, ok, out.stripe_uv = res_i, ok_i, res_i.uv[ok_i]
-        if background is not None and off is None and len(out.stripe_uv):
+        if background is not None and off is None and not pair and len(out.stripe_uv):
             note("clipped line: its plateau read against the target drawn from its points")
             break  # the drawn laser-off image found the line
     if len(out.stripe_uv) == 0 and out.stripe is not None:
