@@ -84,7 +84,7 @@ def board_stripe(
     width_px: float | None = None,
     background: Any = None,
     holes: np.ndarray | None = None,
-    background_gain: float | str = 1.0,
+    background_gain: float | int | str = 1.0,
 ):
     """The laser line on the board: `extract_stripe` inside the board region `mask`
     (colour images: the laser's channel, chosen by the extractor), in the difference

@@ -329,7 +329,7 @@ def extract_stripe(
     channel: str = "auto",
     background: Any = None,
     normalise_background: bool = True,
-    background_gain: float | str = 1.0,
+    background_gain: float | int | str = 1.0,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
 ) -> StripeResult:
@@ -525,7 +525,7 @@ def _extract_track(
     channel: str = "auto",
     background: Any = None,
     normalise_background: bool = True,
-    background_gain: float | str = 1.0,
+    background_gain: float | int | str = 1.0,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
     track: LongRidge | None = None,
