@@ -756,9 +756,10 @@ def test_background_gain_auto_recovers_the_room_light_ratio(gain):
     ratio over ~100 white pixels of noise 1 / 200 of the level: ~0.001; the bound leaves
     room for the blocks' smoothing across the line). The line is then found against the
     reference on the exact centres on nearly every column, RMS 0.08 px (measured
-    0.03-0.066, more where more of the reference's noise is subtracted), every centre within 0.4 px: where the line runs along a print edge its
-    dark half (12 grey levels of line at a noise of 1, x 10 once divided by the albedo)
-    moves it up to 0.32 px (measured); elsewhere within 0.15 px."""
+    0.03-0.066, more where more of the reference's noise is subtracted), every centre
+    within 0.4 px: where the line runs along a print edge its dark half (12 grey levels
+    of line at a noise of 1, x 10 once divided by the albedo) moves it up to 0.32 px
+    (measured); elsewhere within 0.15 px."""
     from scheimflux.stripe._extract import _denoised
     from scheimflux.stripe._gain import fit_gain
     from scheimflux.stripe._image import estimate_noise
