@@ -253,9 +253,10 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
 # the line at 0.044-0.061 px RMS, at most 0.21 px (the stripe image alone: 44-52 %).
 # Colour JPEG: the line over the dark print is a few grey levels of the JPEG's chroma,
 # kept at half resolution and quantised (0.5-1.1 px off there): only the centres over
-# the bright print are kept, all within 0.5 px (measured 0.04-0.10 px RMS, at most
-# 0.36 px; 49 % of the line on the checkerboard, 15 % on the ChArUco board, whose line
-# runs mostly over black marker bits; the stripe image alone: 5-49 centres 0.5-1 px off).
+# the bright print, away from its edges, are kept, all within 0.5 px (measured
+# 0.04-0.09 px RMS, at most 0.36 px; 48-49 % of the line on the checkerboard, 12-15 % on
+# the ChArUco board, whose line runs mostly over black marker bits; the stripe image
+# alone: 5-38 centres per view 0.5-1 px off).
 # Coverage bounds: about 2/3 of the measured.
 @pytest.mark.parametrize(
     "target, ext, min_cover, max_err",
@@ -263,7 +264,7 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
         (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3),
         (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3),
         (Checkerboard(7, 6, 0.2), "jpg", 0.33, 0.5),
-        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.1, 0.5),
+        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.08, 0.5),
     ],
     ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour"],
 )
@@ -282,7 +283,7 @@ def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ex
     if ext == "png":
         assert np.sqrt(np.mean(d**2)) < 0.08, np.sqrt(np.mean(d**2))
     else:
-        assert any("on the dark print dropped" in n for n in report.notes), report.notes
+        assert any("on the dark print or a print edge" in n for n in report.notes), report.notes
 
 
 def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):
