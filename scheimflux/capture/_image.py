@@ -202,6 +202,9 @@ def line_and_points(
     dots, and the points out of the line's reach (`_laser.py`); a colour JPEG keeps some
     of the line in every channel (`_laser.py`): its points are kept out of the line's
     reach too, grown by a chroma block.
+    A pair's stripe image is read against its board image, a laser-off image of the same
+    pose at its own exposure and room light (`background_gain="auto"`); a colour JPEG
+    pair drops its centres on the dark print and next to its edges (`_dark_print`).
 
     **Arguments:**
     - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
