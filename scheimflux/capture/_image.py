@@ -14,6 +14,7 @@ import dataclasses
 import os
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from ..stripe._image import estimate_noise
@@ -39,6 +40,13 @@ __all__ = ["ImageLine", "find_target", "line_and_points"]
 # plateau of ~14 px for 5 px) falls to the noise ~2 FWHM from its centre.
 _LINE_REACH_FWHM = 6.0
 _BGR = {"blue": 0, "green": 1, "red": 2}
+# A colour JPEG pair: centres where the board image's laser plane, within `_DARK_REACH`
+# px across the line, is under `_DARK_PRINT` of its bright level (the 90th percentile on
+# the board) or under `_EDGE_RATIO` of its own brightest there lie on the dark print or
+# on a print edge (see `_dark_print`).
+_DARK_PRINT = 0.3
+_DARK_REACH = 3
+_EDGE_RATIO = 0.5
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -117,6 +125,35 @@ def _pitch_px(corners: np.ndarray) -> float:
     return float(np.median(d.min(axis=1)))
 
 
+def _dark_print(
+    board, channel: str, mask: np.ndarray, uv: np.ndarray, orientation: str
+) -> np.ndarray:
+    """Which centres `uv` of a colour JPEG pair's line lie on the dark print or next to
+    a print edge: within `_DARK_REACH` px across the line (along the scan lines of
+    `orientation`), the board image's plane of the laser's colour falls under
+    `_DARK_PRINT` of its bright level, or under `_EDGE_RATIO` of its brightest there.
+    There the line is a few grey levels of the JPEG's chroma, which it keeps at half
+    resolution and quantised: read against the board image, the line over a 0.08
+    albedo print was 0.5-1.1 px off the exact line (checkerboard and ChArUco scenes),
+    next to a circle grid's dots up to 0.78 px; the centres kept were within 0.36 px."""
+    base = channel.removesuffix("-minus-others")
+    img = np.asarray(board)
+    plane = img[:, :, _BGR[base]] if img.ndim == 3 and base in _BGR else img
+    if img.ndim == 3 and base not in _BGR:
+        plane = img[:, :, :3].max(axis=2)
+    plane = np.ascontiguousarray(plane, dtype=np.float32)
+    bright = float(np.percentile(plane[mask], 90)) if mask.any() else float(plane.max())
+    # the darkest and brightest pixels within `_DARK_REACH` px across the line
+    r = _DARK_REACH
+    across = (2 * r + 1, 1) if orientation == "vertical-scan" else (1, 2 * r + 1)
+    low = cv2.erode(plane, np.ones(across, np.uint8))
+    high = cv2.dilate(plane, np.ones(across, np.uint8))
+    iu = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, plane.shape[1] - 1)
+    iv = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, plane.shape[0] - 1)
+    lo, hi = low[iv, iu], high[iv, iu]
+    return (lo < _DARK_PRINT * bright) | (lo < _EDGE_RATIO * hi)
+
+
 def find_target(image, off, target: Target, *, single: bool, min_points: int,
                 mirrored: bool) -> tuple[DetectionResult, np.ndarray | None, str]:  # fmt: skip
     """Detect the target in one image of target (and perhaps laser line).
@@ -165,6 +202,9 @@ def line_and_points(
     dots, and the points out of the line's reach (`_laser.py`); a colour JPEG keeps some
     of the line in every channel (`_laser.py`): its points are kept out of the line's
     reach too, grown by a chroma block.
+    A pair's stripe image is read against its board image, a laser-off image of the same
+    pose at its own exposure and room light (`background_gain="auto"`); a colour JPEG
+    pair drops its centres on the dark print and next to its edges (`_dark_print`).
 
     **Arguments:**
     - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
@@ -199,17 +239,27 @@ def line_and_points(
         moved = off_local_grid(target, corners)
         if len(clip):
             moved |= near_laser(target, corners, clip, w5, join=False)
-    attempts = [(simg, None, off)]  # (signal image, holes, laser-off image)
+    # (signal image, holes, laser-off image, its gain); a pair's board image is the
+    # laser-off image of its stripe image, at its own exposure and room light
+    pair = not single and off is None and simg is not image
+    attempts = [(simg, None, off, 1.0)]
+    if pair:
+        ref = image
+        if np.ndim(image) == 3 and np.ndim(simg) == 2:  # a colour board image, a grey line
+            ref = image[:, :, :3].astype(np.float32).mean(axis=2)
+        attempts = [(simg, None, ref, "auto")]
     if grey and isinstance(target, CircleGrid):
         grow = _hole_margin(corners, target, stripe_width_px)
-        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow), None)]
+        attempts = [(simg, target_holes(target, corners, shape, margin_px=grow), None, 1.0)]
         if opened is not None:
             # first the line alone: the image less its opening; where the line crosses a
             # dot's edge the opening leaves a notch, so no centre on a dot (grown by a line
             # width) is kept. The attempt that keeps more centres wins (a saturated line
             # can be refused in either)
             diff = image.astype(np.float32) - opened.astype(np.float32)
-            attempts.insert(0, (diff, target_holes(target, corners, shape, margin_px=w5), None))
+            attempts.insert(
+                0, (diff, target_holes(target, corners, shape, margin_px=w5), None, 1.0)
+            )
     elif grey and len(clip):
         # a clipped line on a printed pattern: its plateau's rims are read against the
         # pattern drawn from the points the line has not moved (`laser_off_model`), as
@@ -219,22 +269,32 @@ def line_and_points(
         model = laser_off_model(image, target, drawn, mask, clip, reach_px=_LINE_REACH_FWHM * w5,
                                 noise=estimate_noise(image))  # fmt: skip
         if model is not None:
-            attempts = [(simg, None, model), (simg, None, None)]
+            attempts = [(simg, None, model, 1.0), (simg, None, None, 1.0)]
     ok = None
-    for signal, holes, background in attempts:
+    for signal, holes, background, gain in attempts:
         try:
             res_i, inside = board_stripe(
-                signal, mask, width_px=stripe_width_px, background=background, holes=holes
-            )
+                signal, mask, width_px=stripe_width_px, background=background, holes=holes,
+                background_gain=gain,
+            )  # fmt: skip
         except ValueError as err:
             note(f"no stripe extracted: {err}")
             continue
         ok_i = res_i.valid & inside
         if out.stripe is None or ok_i.sum() > len(out.stripe_uv):
             out.stripe, ok, out.stripe_uv = res_i, ok_i, res_i.uv[ok_i]
-        if background is not None and off is None and len(out.stripe_uv):
+        if background is not None and off is None and not pair and len(out.stripe_uv):
             note("clipped line: its plateau read against the target drawn from its points")
             break  # the drawn laser-off image found the line
+    if pair and jpeg and np.ndim(simg) == 3 and len(out.stripe_uv):
+        dark = _dark_print(image, out.stripe.channel, mask, out.stripe_uv,
+                           out.stripe.orientation)  # fmt: skip
+        if dark.any():
+            ok = ok.copy()
+            ok[np.flatnonzero(ok)[dark]] = False
+            out.stripe_uv = out.stripe.uv[ok]
+            note(f"{int(dark.sum())} stripe centre(s) on the dark print or a print edge "
+                 "dropped (colour JPEG)")  # fmt: skip
     if len(out.stripe_uv) == 0 and out.stripe is not None:
         note("no laser line found on the board")
     if not shared:

@@ -84,10 +84,12 @@ def board_stripe(
     width_px: float | None = None,
     background: Any = None,
     holes: np.ndarray | None = None,
+    background_gain: float | int | str = 1.0,
 ):
     """The laser line on the board: `extract_stripe` inside the board region `mask`
     (colour images: the laser's channel, chosen by the extractor), in the difference
-    from the laser-off image `background` when there is one.
+    from the laser-off image `background` when there is one (`background_gain`: as for
+    `extract_stripe`; `"auto"` for a pair's board image, taken at its own exposure).
 
     This is the single place where `detect` extracts board stripes. The extractor accepts
     ridges only (checker edges, dots and marker borders are refused) and returns no centre
@@ -111,7 +113,9 @@ def board_stripe(
         candidates = [(fill_holes(image, holes, axis), background) for axis in (1, 0)]
     best = None
     for img, bg in candidates:
-        result = extract_stripe(img, width_px=width_px, mask=mask, background=bg)
+        result = extract_stripe(
+            img, width_px=width_px, mask=mask, background=bg, background_gain=background_gain
+        )
         uv = result.uv
         inside = np.zeros(len(uv), bool)
         fin = np.all(np.isfinite(uv), axis=1)

@@ -127,7 +127,7 @@ def write_scene_images(
     noise_sigma: float = 0.004,
     blur_sigma_px: float = 0.8,
     seed: int = 0,
-    stripe_on_board: bool = False,
+    stripe_on_board: bool = True,
     overwrite: bool = False,
     verbose: bool = False,
 ) -> list[str]:
@@ -157,8 +157,9 @@ def write_scene_images(
     - `stripe_on_board`: the pair layout's stripe images on the board's albedo, as a
       laser-only exposure of the printed board sees it: `albedo x (ambient + 0.6 x
       line)` (the `ambient` field and the stripe's peak as on a plain surface), so the
-      line is dimmer on the dark print and the print shows faintly; False (default): on
-      a plain surface (albedo 1).
+      line is dimmer on the dark print and the print shows faintly (default, as a real
+      pair capture); False: on a plain surface (albedo 1), which no real pair shows (its
+      board image holds the print, its stripe image none).
     - `overwrite`: replace existing files; otherwise any existing target raises
       `FileExistsError` before anything is written.
 

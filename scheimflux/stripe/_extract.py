@@ -31,6 +31,7 @@ from ._clipped import (
     sides_even,
 )
 from ._coarse import FACTOR, coarse_track, downsample
+from ._gain import fit_gain
 from ._image import CHANNELS, _median, as_image, block_noise, channel_image, estimate_noise
 from ._link import consistent, link_segments
 from ._longridge import LongRidge, long_ridge_track, path_track
@@ -183,12 +184,24 @@ def _check_options(method, width_px, orientation, band_px, min_strength, saturat
         raise ValueError(f"saturation must be a finite grey level or None, got {saturation}")
 
 
-def _signal(image, background, channel, width, normalise):
+def _check_gain(gain) -> None:
+    if isinstance(gain, str):
+        if gain != "auto":
+            raise ValueError(f"background_gain must be 'auto' or a number >= 0, got {gain!r}")
+    elif isinstance(gain, bool) or not isinstance(gain, (int, float, np.integer, np.floating)):
+        raise ValueError(f"background_gain must be 'auto' or a number >= 0, got {gain!r}")
+    elif not (math.isfinite(gain) and gain >= 0):
+        raise ValueError(f"background_gain must be 'auto' or a number >= 0, got {gain}")
+
+
+def _signal(image, background, channel, width, normalise, gain=1.0, mask=None):
     """The 2-D signal image, the plain image whose clipping marks saturation, the
     channel used, the signal before the albedo normalisation (the signal itself
     without one), the plain laser-off channel and the denoised laser-off signal that
     was subtracted (None and None without one) and the colour candidates in score
     order (the channel alone unless it was chosen)."""
+    if background is not None and (isinstance(gain, str) or float(gain) != 1.0):
+        return _gain_signal(image, background, channel, width, normalise, gain, mask)
     img = as_image(image)
     if background is not None:
         off = as_image(background, name="background")
@@ -215,6 +228,58 @@ def _signal(image, background, channel, width, normalise):
     return sig, sat, channel, plain, off_level, base, ranked
 
 
+def _gain_signal(image, background, channel, width, normalise, gain, mask):
+    """`_signal` against a laser-off reference at another exposure or room light
+    (`background_gain` "auto" or a number other than 1): each plane of the image less
+    g x the same plane of the denoised reference (g fitted per plane by `fit_gain`
+    inside `mask` for "auto"), the channel chosen from that difference, and the
+    difference divided by the reference's own level (not by g x it, which is about 0
+    with the room light off)."""
+    img = as_image(image)
+    off = as_image(background, name="background")
+    if off.shape[:2] != img.shape[:2]:
+        raise ValueError(
+            f"background (laser-off) image has shape {off.shape}, the image {img.shape}"
+        )
+    if off.ndim == 3 and img.ndim == 2:
+        raise ValueError(f"background (laser-off) image is colour {off.shape}, the image grey")
+    if off.ndim == 2 and img.ndim == 3:  # a grey reference for each colour plane
+        off = np.dstack([off] * 3)
+    roi = as_mask(mask, img.shape[:2])
+    planes, subtracted, denoised = [], [], []
+    for k in range(1 if img.ndim == 2 else 3):
+        s = (img if img.ndim == 2 else img[:, :, k]).astype(np.float32)
+        b = (off if off.ndim == 2 else off[:, :, k]).astype(np.float32)
+        noise = estimate_noise(b)
+        b = _denoised(b)
+        g = fit_gain(s, b, roi, noise) if gain == "auto" else np.float32(gain)
+        denoised.append(b)
+        subtracted.append(g * b)
+        planes.append(s - subtracted[-1])
+    one = img.ndim == 2
+    diff = planes[0] if one else np.dstack(planes)
+    base_all = subtracted[0] if one else np.dstack(subtracted)
+    ranked = (channel,)
+    if channel == "auto":
+        ranked = ranked_channels(diff, width)
+        channel = ranked[0]
+    elif img.ndim == 2 and channel != "grey":
+        raise ValueError(f"channel {channel!r} needs a colour image; this one is grey")
+    sig, _ = channel_image(diff, channel)
+    _, sat = channel_image(img, channel)
+    _, level = channel_image(off, channel)
+    base = channel_image(base_all, channel)[0].astype(np.float32)
+    sig = plain = np.ascontiguousarray(sig, dtype=np.float32)
+    if normalise:
+        # the reference's level (albedo x its room light), edge-kept denoised and not
+        # blurred further: the laser light x albedo divided by a blurred albedo keeps
+        # a step at every print edge under the line (a circle grid's dots: 0.12 px RMS
+        # off the exact line with the blur, 0.03-0.04 px without)
+        smooth = channel_image(denoised[0] if one else np.dstack(denoised), channel)[1]
+        sig = _albedo_normalised(sig, np.ascontiguousarray(smooth, dtype=np.float32), blur=0.0)
+    return sig, sat, channel, plain, level, base, ranked
+
+
 def _others_mean(image: Any, channel: str) -> np.ndarray:
     """The mean of the two channels other than the laser's (`channel` "X-minus-others"):
     albedo x room light, without the laser (float32, image frame)."""
@@ -235,14 +300,15 @@ def _denoised(off: np.ndarray) -> np.ndarray:
     return cv2.bilateralFilter(off, 5, 4.0 * noise, 1.5)
 
 
-def _albedo_normalised(diff: np.ndarray, off: np.ndarray) -> np.ndarray:
+def _albedo_normalised(diff: np.ndarray, off: np.ndarray, blur: float = 0.7) -> np.ndarray:
     """`diff · typical / max(off, floor)`: the laser light over the ambient light of the
     same pixel. Brightness is albedo x (ambient + laser), so the laser-on minus laser-off
     difference still carries the target's albedo (the line is dimmer on black squares
     and an albedo edge under it pulls its centre); dividing by the laser-off level takes
     the albedo out. `typical` (the median laser-off level) keeps grey-level units;
-    `floor` (a tenth of the 90th percentile) keeps dark pixels from amplifying noise."""
-    smooth = cv2.GaussianBlur(off, (0, 0), 0.7)
+    `floor` (a tenth of the 90th percentile) keeps dark pixels from amplifying noise.
+    `blur`: the Gaussian (px) `off` is smoothed with first (0: `off` is smooth already)."""
+    smooth = cv2.GaussianBlur(off, (0, 0), blur) if blur > 0 else off
     typical = float(np.median(smooth))
     floor = 0.1 * float(np.percentile(smooth, 90))
     if not floor > 0:
@@ -263,6 +329,7 @@ def extract_stripe(
     channel: str = "auto",
     background: Any = None,
     normalise_background: bool = True,
+    background_gain: float | int | str = 1.0,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
 ) -> StripeResult:
@@ -311,6 +378,14 @@ def extract_stripe(
     - `normalise_background`: with a `background`, divide the difference by the
       laser-off level (albedo-free: the line keeps its brightness and its centre across
       black and white squares); False: the plain difference.
+    - `background_gain`: the room light of `image` as a multiple g of the
+      `background`'s: 1 (default) for a laser-off image at the same light and exposure;
+      `"auto"` for a reference taken at another exposure or room light (a pair
+      capture's board image: the stripe image's room light may be the same, dimmer or
+      off), g fitted per colour plane as a smooth map over the image (inside `mask`),
+      the laser line left out (`_gain.py`); or a number. The image less g x the
+      background is divided by the background's own level (with a floor for its dark
+      pixels), not by g x it.
     - `max_jump_px`: largest change of the centre between neighbouring scan lines within
       a segment; `None`: `max(2, width / 2)`.
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
@@ -325,7 +400,7 @@ def extract_stripe(
         image, method=method, width_px=width_px, orientation=orientation, band_px=band_px,
         min_strength=min_strength, saturation=saturation, mask=mask, channel=channel,
         max_jump_px=max_jump_px, min_segment=min_segment, background=background,
-        normalise_background=normalise_background,
+        normalise_background=normalise_background, background_gain=background_gain,
     )  # fmt: skip
 
 
@@ -450,6 +525,7 @@ def _extract_track(
     channel: str = "auto",
     background: Any = None,
     normalise_background: bool = True,
+    background_gain: float | int | str = 1.0,
     max_jump_px: float | None = None,
     min_segment: int | None = None,
     track: LongRidge | None = None,
@@ -458,10 +534,11 @@ def _extract_track(
     long-ridge path in the scan frame of `orientation`), from that path. Also returns
     what a long-ridge search needs where no centre was found (None otherwise)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
+    _check_gain(background_gain)
     asked = orientation
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
     img, sat_img, channel, unnormalised, off_level, off_signal, ranked = _signal(
-        image, background, channel, width, normalise_background
+        image, background, channel, width, normalise_background, background_gain, mask
     )
     roi = as_mask(mask, img.shape)
     # the frame's maximum (the clipping level of an integer image without `saturation`)
