@@ -265,14 +265,22 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
         (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3),
         (Checkerboard(7, 6, 0.2), "jpg", 0.33, 0.5),
         (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.08, 0.5),
+        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.33, 0.5),
     ],
-    ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour"],
+    ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour",
+         "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
 )
 def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ext, min_cover,
                                                        max_err):  # fmt: skip
     rig, truth, _ = _scene(cam, target)
+    mixed = ext == "png-board-jpg-stripe"  # the line's chroma is the stripe file's
+    ext = "jpg" if mixed else ext
     write_scene_images(tmp_path, rig, target, truth, layout="pair", ext=ext,
                        colour=ext == "jpg", seed=1)  # fmt: skip
+    if mixed:  # the board images stored losslessly (as decoded), the stripe images JPEG
+        for f in tmp_path.glob("view_*_board.jpg"):
+            cv2.imwrite(str(f.with_suffix(".png")), cv2.imread(str(f), cv2.IMREAD_UNCHANGED))
+            f.unlink()
     obs, report = detect_captures(tmp_path, target)
     line = truth.stripe_px[0]
     st = obs.views[0].stripe_px

@@ -166,7 +166,8 @@ def detect_captures(
                 drop(cv, size.mismatch(simg, cv.stripe))
                 continue
         line = line_and_points(image, off, simg, opened, res, target, single=single,
-                               jpeg=_is_jpeg(cv.board), stripe_width_px=stripe_width_px,
+                               jpeg=any(_is_jpeg(p) for p in (cv.board, cv.stripe) if p),
+                               stripe_width_px=stripe_width_px,
                                margin_px=margin_px, min_points=min_points,
                                note=lambda text, cv=cv: note(cv, text))  # fmt: skip
         corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
