@@ -202,6 +202,30 @@ def write_scene_images(
         noise_sigma=float(noise_sigma),
         bit_depth=int(bit_depth),
     )
+
+    def on_board(f, k, light, peak, seed):
+        """The print lit by `light` (a level or an (H, W) field) and the laser line of
+        view `k` (peak `peak` on white) on it: `albedo x (light + peak x line)`, noise
+        added per channel; the room light grey on every channel and the red laser on R
+        alone in colour."""
+        albedo = render_target(
+            board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
+        ) / 65535.0  # fmt: skip
+        # the line's profile, peak 1 (unclipped grey levels of an 8-bit image divided by
+        # its full scale)
+        laser = _stripe_image(
+            shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
+            ambient=0.0, noise_sigma=0.0, saturate=False, bit_depth=8, seed=seed,
+        ) / 255.0  # fmt: skip
+        lit = albedo * light
+        line = albedo * peak * laser
+        rng = np.random.default_rng(seed)
+        chans = [lit, lit, lit + line] if colour else [lit + line]
+        img = np.dstack(
+            [_quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth) for c in chans]
+        )  # fmt: skip
+        return img if colour else img[:, :, 0]
+
     written = []
     for n, (path, kind, k) in enumerate(jobs):
         t0 = time.perf_counter()
@@ -216,43 +240,10 @@ def write_scene_images(
                 if colour:
                     img = np.dstack([img] * 3)
             else:
-                albedo = render_target(
-                    board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
-                ) / 65535.0  # fmt: skip
-                # the line's profile, peak 1 (unclipped grey levels of an 8-bit image
-                # divided by its full scale)
-                laser = _stripe_image(
-                    shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
-                    ambient=0.0, noise_sigma=0.0, saturate=False, bit_depth=8, seed=s,
-                ) / 255.0  # fmt: skip
-                rng = np.random.default_rng(s)
-                lit = albedo * float(ambient_level)
-                if colour:  # grey room light on every channel, the red laser on R only
-                    chans = [lit, lit, lit + albedo * float(laser_peak) * laser]
-                    img = np.dstack(
-                        [_quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth)
-                         for c in chans]
-                    )  # fmt: skip
-                else:
-                    c = lit + albedo * float(laser_peak) * laser
-                    img = _quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth)
+                img = on_board(f, k, float(ambient_level), float(laser_peak), s)
         elif kind == "stripe" and stripe_on_board:
             f = _board_to_pixel(rig, truth.board_poses[k])
-            albedo = render_target(
-                board, f, shape=shape, blur_sigma_px=float(blur_sigma_px), bit_depth=16,
-            ) / 65535.0  # fmt: skip
-            laser = _stripe_image(
-                shape, truth.stripe_px[k], width_px=float(stripe_width_px), peak=1.0,
-                ambient=0.0, noise_sigma=0.0, saturate=False, bit_depth=8, seed=s,
-            ) / 255.0  # fmt: skip
-            lit = albedo * _ambient_field(ambient, shape)
-            line = albedo * _STRIPE_PEAK * laser
-            rng = np.random.default_rng(s)
-            chans = [lit, lit, lit + line] if colour else [lit + line]
-            img = np.dstack(
-                [_quantise(c + rng.normal(0, noise_sigma, c.shape), bit_depth) for c in chans]
-            )  # fmt: skip
-            img = img if colour else img[:, :, 0]
+            img = on_board(f, k, _ambient_field(ambient, shape), _STRIPE_PEAK, s)
         else:
             pts = truth.stripe_px[k] if kind == "stripe" else truth.scan_px[k]
             img = _stripe_image(shape, pts, seed=s, **stripe_kw)
