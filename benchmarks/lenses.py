@@ -50,6 +50,7 @@ import numpy as np
 
 from scheimflux.calibrate import calibrate
 from scheimflux.io import read_observations, write_observations
+from scheimflux.io._observations import within_radius
 from scheimflux.reconstruct._reconstruct import stripe_to_camera
 from scheimflux.simulate import build_rig, load_lens, simulate_observations
 from scheimflux.simulate._pupil import pupil_grid, pupil_points
@@ -187,25 +188,6 @@ def _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache):
     return obs
 
 
-def within_radius(obs, radius_px: float | None):
-    """`obs` without the corners (NaN) and stripe pixels farther than `radius_px` from the
-    sensor's centre; `obs` itself when `radius_px` is None."""
-    import dataclasses
-
-    if radius_px is None:
-        return obs
-    c = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
-    views = []
-    for v in obs.views:
-        cp = np.array(v.corners_px, dtype=float)
-        with np.errstate(invalid="ignore"):
-            cp[np.linalg.norm(cp - c, axis=1) > radius_px] = np.nan
-        sp = np.array(v.stripe_px, dtype=float).reshape(-1, 2)
-        sp = sp[np.linalg.norm(sp - c, axis=1) <= radius_px]
-        views.append(dataclasses.replace(v, corners_px=cp, stripe_px=sp))
-    return dataclasses.replace(obs, views=views)
-
-
 def _median(v) -> float:
     v = np.asarray(v, dtype=float)
     return float(np.median(v[np.isfinite(v)])) if np.isfinite(v).any() else math.nan
@@ -247,8 +229,9 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
     errs = {m: dict(covered=[], full=[]) for m in models}
     flags = {m: "" for m in models}
     for seed in seeds:
-        obs = within_radius(_world_data(rig, lens_tag, mag, seed, imaging, sampling, cache),
-                            max_radius_px)  # fmt: skip
+        obs = _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache)
+        if max_radius_px is not None:
+            obs = within_radius(obs, max_radius_px)
         inside = _covered(obs, uv)
         for m in models:
             rec = dict(lens=lens_tag, mag=mag, seed=seed, imaging=imaging, model=m,

@@ -13,6 +13,7 @@ from helpers import central_difference, tree_allclose
 
 import scheimflux as sf
 from scheimflux.camera import RadialTangential, ThickLensNonCentral
+from scheimflux.io._observations import within_radius
 
 
 def _wide(pupil=(0.08, -0.05), **kw):
@@ -369,15 +370,9 @@ def _grid_distance_rms_um(cal, X, uv):
     return float(np.sqrt(np.mean(d**2)) * 1e3)
 
 
-# slow: ~1 min of pupil tracing and 3-5 min of calibration on a loaded 2-core machine
-@pytest.mark.slow
-def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
-    # The shipped 8 mm f/4.5 Tessar at ×0.5 (25° half-field), imaged as a sensor sees it:
-    # each pixel the centroid of the bundle filling the stop (coma, vignetting). The
-    # benchmark's scene (benchmarks/lenses.py), noise-free so that what is left is model
-    # bias. Truth: laser-plane points traced by the same pupil-integrating tracer,
-    # where the boards cover the image, never the calibrated model's own projections.
-    from scheimflux.calibrate import calibrate
+def _tessar_centroid_scene():
+    """The benchmark's Tessar ×0.5 scene (benchmarks/lenses.py), noise-free, imaged by
+    pupil centroids: the rig, the pupil sampling and the observations."""
     from scheimflux.simulate import build_rig, load_lens, simulate_observations
     from scheimflux.simulate._pupil import pupil_grid
     from scheimflux.targets import Checkerboard
@@ -390,6 +385,20 @@ def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
         rig, Checkerboard(11, 8, square), n_views=15, corner_noise_px=0.0,
         stripe_noise_px=0.0, stage_scan=False, seed=0, imaging="centroid", pupil=sampling,
     )  # fmt: skip
+    return rig, sampling, obs
+
+
+# slow: ~1 min of pupil tracing and 3-5 min of calibration on a loaded 2-core machine
+@pytest.mark.slow
+def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
+    # The shipped 8 mm f/4.5 Tessar at ×0.5 (25° half-field), imaged as a sensor sees it:
+    # each pixel the centroid of the bundle filling the stop (coma, vignetting). The
+    # benchmark's scene (benchmarks/lenses.py), noise-free so that what is left is model
+    # bias. Truth: laser-plane points traced by the same pupil-integrating tracer,
+    # where the boards cover the image, never the calibrated model's own projections.
+    from scheimflux.calibrate import calibrate
+
+    rig, sampling, obs = _tessar_centroid_scene()
     X, uv = _covered_laser_grid(rig, obs, sampling)
     assert len(X) > 100
     central = calibrate(obs, model="thick-lens", throw=False)
@@ -491,23 +500,6 @@ def test_pupil_terms_held_with_the_profile_gauge_too():
     assert nc.reprojection_rms_px == pytest.approx(central.reprojection_rms_px, rel=1e-6)
 
 
-def _within_radius(obs, radius_px):
-    """`obs` without the corners (NaN) and stripe pixels farther than `radius_px` from the
-    sensor's centre."""
-    import dataclasses
-
-    c = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
-    views = []
-    for v in obs.views:
-        cp = np.array(v.corners_px, dtype=float)
-        with np.errstate(invalid="ignore"):
-            cp[np.linalg.norm(cp - c, axis=1) > radius_px] = np.nan
-        sp = np.array(v.stripe_px, dtype=float).reshape(-1, 2)
-        sp = sp[np.linalg.norm(sp - c, axis=1) <= radius_px]
-        views.append(dataclasses.replace(v, corners_px=cp, stripe_px=sp))
-    return dataclasses.replace(obs, views=views)
-
-
 # slow: ~1 min of pupil tracing and 2-4 min of calibration on a loaded 2-core machine
 @pytest.mark.slow
 def test_without_the_vignetted_field_the_noncentral_model_is_far_below_opencv():
@@ -517,19 +509,9 @@ def test_without_the_vignetted_field_the_noncentral_model_is_far_below_opencv():
     # docs/noncentral.md). Truth: laser-plane points traced by the same pupil-integrating
     # tracer inside the hull of the corners kept.
     from scheimflux.calibrate import calibrate
-    from scheimflux.simulate import build_rig, load_lens, simulate_observations
-    from scheimflux.simulate._pupil import pupil_grid
-    from scheimflux.targets import Checkerboard
 
-    rig = build_rig(load_lens("tessar"), 0.5, sensor=(2448, 2048),
-                    pixel_pitch_mm=(0.00345, 0.00345))  # fmt: skip
-    sampling = pupil_grid(8)
-    square = round(0.65 * 2448 * 0.00345 / 0.5 / 12.0, 3)
-    obs, _ = simulate_observations(
-        rig, Checkerboard(11, 8, square), n_views=15, corner_noise_px=0.0,
-        stripe_noise_px=0.0, stage_scan=False, seed=0, imaging="centroid", pupil=sampling,
-    )  # fmt: skip
-    obs = _within_radius(obs, 850.0)
+    rig, sampling, obs = _tessar_centroid_scene()
+    obs = within_radius(obs, 850.0)
     X, uv = _covered_laser_grid(rig, obs, sampling)
     assert len(X) > 80
     nc = calibrate(obs, model="thick-lens-noncentral", throw=False)

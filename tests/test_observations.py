@@ -79,3 +79,20 @@ def test_not_json(tmp_path):
         read_observations(path)
     with pytest.raises(FileNotFoundError, match="observations file not found"):
         read_observations(tmp_path / "missing.json")
+
+
+def test_within_radius_drops_what_lies_beyond_it():
+    # the sensor's centre is (799.5, 599.5); distances worked out by hand: corners
+    # (10, 20) 979.3 px, (12.5, 30.25) 971.3 px (the second corner is undetected), stripe
+    # (1, 2) 997.3 px, (800, 600) 0.7 px: at 975 px the first corner and stripe pixel go
+    from scheimflux.io._observations import within_radius
+
+    obs = _obs()
+    v = obs.views[0]
+    obs.views[0] = View(np.vstack([v.corners_px[:3], [[800.0, 600.0]]]),
+                        np.array([[1.0, 2.0], [800.0, 600.0]]))  # fmt: skip
+    cut = within_radius(obs, 975.0)
+    np.testing.assert_array_equal(cut.views[0].corner_mask, [False, False, True, True])
+    np.testing.assert_array_equal(cut.views[0].corners_px[2:], obs.views[0].corners_px[2:])
+    np.testing.assert_array_equal(cut.views[0].stripe_px, [[800.0, 600.0]])
+    assert cut.width == obs.width and cut.board_points_mm is obs.board_points_mm
