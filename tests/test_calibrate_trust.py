@@ -232,3 +232,106 @@ def test_free_spec_accepts_stage_paths():
     assert spec.stage.delta_omega is True and spec.plane.n is True
     with pytest.raises(ValueError, match="no parameter 'omega' there .*delta_omega"):
         free_spec(full, ("stage.omega",))
+
+
+# Calibrating inside a field radius: the corners beyond it are pushed 0.5 px outward
+# (17 σ), as a vignetted lens's clipped bundles shift them at the field's edge; none of
+# them may reach the solve.
+FIELD_RADIUS_PX = 600.0
+
+
+def _beyond(obs, px):
+    centre = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+    return np.linalg.norm(np.asarray(px) - centre, axis=-1) > FIELD_RADIUS_PX
+
+
+def _outer_field_shifted(obs):
+    centre = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+    views = []
+    for v in obs.views:
+        c = np.array(v.corners_px, dtype=float)
+        far = _beyond(obs, c)
+        r = c[far] - centre
+        c[far] += 0.5 * r / np.linalg.norm(r, axis=1, keepdims=True)
+        views.append(View(c, np.array(v.stripe_px, dtype=float)))
+    return dataclasses.replace(obs, views=views)
+
+
+def _cut_by_hand(obs):
+    views = []
+    for v in obs.views:
+        c = np.array(v.corners_px, dtype=float)
+        c[_beyond(obs, c)] = np.nan
+        s = np.array(v.stripe_px, dtype=float)
+        views.append(View(c, s[~_beyond(obs, s)]))
+    return dataclasses.replace(obs, views=views)
+
+
+@pytest.fixture(scope="module")
+def inside_radius(scene):
+    return calibrate(
+        _outer_field_shifted(scene[0]), distortion="none", max_radius_px=FIELD_RADIUS_PX
+    )
+
+
+def test_a_field_radius_leaves_the_outer_field_out_and_counts_it(scene, inside_radius):
+    obs = scene[0]
+    cal = inside_radius
+    q = cal.quality
+    assert q.passed, q.summary()
+    n_corners = sum(int(_beyond(obs, v.corners_px).sum()) for v in obs.views)
+    n_stripe = sum(int(_beyond(obs, v.stripe_px).sum()) for v in obs.views)
+    assert n_corners >= 10 and n_stripe > 50  # the radius does cut the scene
+    assert q.rejected["field_radius_px"] == FIELD_RADIUS_PX
+    assert q.rejected["corners_beyond_radius"] == n_corners
+    assert q.rejected["stripe_beyond_radius"] == n_stripe
+    assert q.rejected["gauge_beyond_radius"] == 0
+    assert f"beyond 600 px from the sensor's centre {n_corners} corners" in q.summary()
+    # the shifted corners never reach the solve: the result is the calibration of the
+    # observations cut by hand (the same arrays, so the same numbers)
+    by_hand = calibrate(_cut_by_hand(obs), distortion="none")
+    np.testing.assert_array_equal(np.asarray(cal.plane.n), np.asarray(by_hand.plane.n))
+    assert cal.reprojection_rms_px == by_hand.reprojection_rms_px
+    # the coverage ends at the radius (the data's hulls, grown by a margin, would reach
+    # beyond it): on a grid of cells, so every pixel of the data kept is covered and
+    # none farther than the radius + one cell diagonal
+    centre = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+    cov = cal.coverage
+    kept = np.concatenate([np.asarray(v.corners_px) for v in obs.views])
+    kept = kept[~_beyond(obs, kept)]
+    assert np.all(np.asarray(cov.contains(kept)))
+    u, v = np.meshgrid(np.arange(0, obs.width, 4.0), np.arange(0, obs.height, 4.0))
+    grid = np.stack([u.ravel(), v.ravel()], axis=1)
+    inside = np.asarray(cov.contains(grid))
+    assert np.linalg.norm(grid[inside] - centre, axis=1).max() <= (
+        FIELD_RADIUS_PX + np.sqrt(2) * cov.cell_px
+    )
+    assert cov.margin_px > np.sqrt(2) * cov.cell_px  # without the clip it would fail
+
+
+def test_a_field_radius_comes_back_from_the_file(scene, inside_radius, tmp_path):
+    # read back with the full observations, the residual arrays are those solved on
+    from scheimflux.io import read_calibration, write_calibration
+
+    path = tmp_path / "cal.json"
+    write_calibration(path, inside_radius)
+    loaded = read_calibration(path, observations=_outer_field_shifted(scene[0]))
+    for name in ("corner_w", "stripe_w", "corners", "stripe"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded.data, name)), np.asarray(getattr(inside_radius.data, name))
+        )
+
+
+def test_a_field_radius_that_leaves_too_little_is_refused(scene, tmp_path, capsys):
+    obs = scene[0]
+    with pytest.raises(ValueError, match="leaves 0 views with 6 or more corners"):
+        calibrate(obs, distortion="none", max_radius_px=20.0)
+    with pytest.raises(ValueError, match="positive number of pixels"):
+        calibrate(obs, distortion="none", max_radius_px=-1.0)
+    path = tmp_path / "obs.json"
+    write_observations(path, obs)
+    code = main(["calibrate", str(path), "--out", str(tmp_path / "c.json"),
+                 "--max-radius-px", "0"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1 and "--max-radius-px must be positive" in err
+    assert not (tmp_path / "c.json").exists()

@@ -24,6 +24,7 @@ from ._gates import (
     Gate as Gate,
     Quality as Quality,
     QualityError as QualityError,
+    screen_field as screen_field,
     screen_observations as screen_observations,
 )
 from ._init import with_nominal as with_nominal

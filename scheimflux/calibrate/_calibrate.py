@@ -17,7 +17,7 @@ from ._camera import (
     calibrate_camera,
     pixel_footprint_mm,
 )
-from ._gates import REJECT_SIGMA, screen_observations
+from ._gates import REJECT_SIGMA, screen_field, screen_observations
 from ._gauge import profile_notes
 from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
@@ -51,6 +51,7 @@ def calibrate(
     throw: bool = True,
     opencv_flags: Sequence[str] | str | None = None,
     gauge: str = "held",
+    max_radius_px: float | None = None,
 ) -> Calibration:
     """Calibrate camera, laser plane and (if scanned) the rotary stage.
 
@@ -104,6 +105,12 @@ def calibrate(
       fixes its weak directions (see [`calibrate_camera`][]; docs/noncentral.md). With
       `"profile"` the joint solve holds the axis point at the camera profile's value and
       the covariance has it free.
+    - `max_radius_px`: calibrate inside this distance (px) from the sensor's centre
+      only: every corner, stripe and gauge pixel beyond it is left out and counted
+      ([`screen_field`][]); for a lens that vignettes the outer field, where a spot's
+      centroid is not the image of one ray (docs/noncentral.md). The coverage, and so
+      `reconstruct`'s flag on extrapolated points, follows the data kept. None: the
+      whole sensor.
 
     **Returns:** a [`Calibration`][]: the parameter pytree (camera, board poses, laser
     plane, stage, eccentricity), every solve's `Fit`, the RMS figures, the data the
@@ -114,6 +121,9 @@ def calibrate(
     determine the laser plane or that leave parameters undetermined.
     """
     obs, outside = screen_observations(obs)
+    if max_radius_px is not None:
+        obs, field = _inside_radius(obs, max_radius_px)
+        outside.update(field)
     stage_freeze = _stage_freeze(freeze, obs)
     distortion = _default_distortion(model, distortion)
     camera_only = not _has_board_stripes(obs)
@@ -220,6 +230,25 @@ def calibrate(
         axis_profile=cam_cal.axis_profile,
     )
     return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes)
+
+
+def _inside_radius(obs: Observations, radius_px) -> tuple[Observations, dict]:
+    """`screen_field`, refusing a radius that leaves too little to calibrate from."""
+    had_stripes = _has_board_stripes(obs)
+    cut, counts = screen_field(obs, radius_px)
+    r = counts["field_radius_px"]
+    views = sum(int(v.corner_mask.sum()) >= 6 for v in cut.views)
+    if views < 3:
+        raise ValueError(
+            f"max_radius_px = {r:g} leaves {views} views with 6 or more corners within "
+            f"{r:g} px of the sensor's centre; calibration needs 3"
+        )
+    if had_stripes and not _has_board_stripes(cut):
+        raise ValueError(
+            f"max_radius_px = {r:g} leaves no stripe pixel on the boards: the laser plane "
+            "would not be calibrated"
+        )
+    return cut, counts
 
 
 def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:

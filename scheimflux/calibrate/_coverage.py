@@ -30,7 +30,14 @@ from numbers import Integral, Real
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["COVERAGE_FORMAT", "DEFAULT_CELL_PX", "Coverage", "coverage_from_data", "coverage_of"]
+__all__ = [
+    "COVERAGE_FORMAT",
+    "DEFAULT_CELL_PX",
+    "Coverage",
+    "clip_to_radius",
+    "coverage_from_data",
+    "coverage_of",
+]
 
 COVERAGE_FORMAT = "scheimflux.coverage/1"
 # 8 px cells: a 2448 × 2048 sensor is a 306 × 256 grid (9.8 kB packed), finer than any
@@ -231,6 +238,18 @@ def coverage_of(
             continue
         grid |= _distance_to_hull(centres, _hull(pts)) <= margin_px
     return Coverage(grid.reshape(rows, cols), int(cell_px), float(margin_px), (w, h))
+
+
+def clip_to_radius(cov: Coverage, radius_px: float) -> Coverage:
+    """`cov` without the cells whose centre lies farther than `radius_px` from the
+    sensor's centre: a calibration made inside that radius (`calibrate(max_radius_px=)`)
+    does not cover what the dilation of its hulls reaches beyond it."""
+    w, h = cov.sensor_size
+    rows, cols = cov.grid.shape
+    cu = np.minimum((np.arange(cols) + 0.5) * cov.cell_px - 0.5, w - 1)
+    cv = np.minimum((np.arange(rows) + 0.5) * cov.cell_px - 0.5, h - 1)
+    du, dv = np.meshgrid(cu - (w - 1) / 2.0, cv - (h - 1) / 2.0)
+    return dataclasses.replace(cov, grid=cov.grid & (np.hypot(du, dv) <= radius_px))
 
 
 def coverage_from_data(data, sensor_size, **kw) -> Coverage | None:

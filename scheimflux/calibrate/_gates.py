@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from ..io._observations import Observations, StageScan
+from ..io._observations import Observations, StageScan, within_radius
 
 # Reprojection / stripe / gauge RMS above this many stated σ fail the gate.
 RMS_FACTOR = 3.0
@@ -74,7 +74,9 @@ class Quality:
     **Fields:**
     - `gates`: every [`Gate`][] checked.
     - `rejected`: counts of left-out observations: `corners_outside_sensor`,
-      `stripe_outside_sensor`, `gauge_outside_sensor` (before the solve),
+      `stripe_outside_sensor`, `gauge_outside_sensor` (before the solve), with a field
+      radius also `field_radius_px`, `corners_beyond_radius`, `stripe_beyond_radius`,
+      `gauge_beyond_radius` ([`screen_field`][]),
       `corner_outliers`, `stripe_outliers`, `gauge_outliers` (rejection pass; with a
       table target also `table_corner_outliers`, `table_stripe_outliers`), and the
       pass's `threshold_sigma`.
@@ -119,7 +121,16 @@ class Quality:
             "  left out: outside the sensor "
             f"{r.get('corners_outside_sensor', 0)} corners, "
             f"{r.get('stripe_outside_sensor', 0)} stripe and "
-            f"{r.get('gauge_outside_sensor', 0)} gauge pixels; {beyond} "
+            f"{r.get('gauge_outside_sensor', 0)} gauge pixels; "
+            + (
+                f"beyond {r['field_radius_px']:g} px from the sensor's centre "
+                f"{r.get('corners_beyond_radius', 0)} corners, "
+                f"{r.get('stripe_beyond_radius', 0)} stripe and "
+                f"{r.get('gauge_beyond_radius', 0)} gauge pixels; "
+                if r.get("field_radius_px") is not None
+                else ""
+            )
+            + f"{beyond} "
             f"{r.get('corner_outliers', 0)} corners, {r.get('stripe_outliers', 0)} stripe "
             f"and {r.get('gauge_outliers', 0)} gauge points"
             + (
@@ -202,6 +213,72 @@ def screen_observations(obs: Observations) -> tuple[Observations, dict]:
         "gauge_outside_sensor": n_gauge,
     }
     return dataclasses.replace(obs, views=views, stage=stage), counts
+
+
+def screen_field(obs: Observations, radius_px: float) -> tuple[Observations, dict]:
+    """Leave out every pixel farther than `radius_px` from the sensor's centre, and count
+    them: a calibration inside the part of the field the user trusts (e.g. where the lens
+    does not vignette: there a clipped ray bundle's centroid is not the image of one ray,
+    docs/noncentral.md).
+
+    The centre is the middle of the sensor, `((width − 1) / 2, (height − 1) / 2)`.
+    Corners beyond the radius become "not detected" (NaN); stripe, gauge and table-target
+    laser-line pixels are dropped; table-target corners become NaN.
+
+    **Returns:** `(screened observations, counts)`; counts has `field_radius_px` and
+    `corners_beyond_radius`, `stripe_beyond_radius`, `gauge_beyond_radius` (table-target
+    corners and line pixels are counted with the corners and the stripe).
+
+    **Raises:** `ValueError` for a radius that is not a positive finite number.
+    """
+    try:
+        radius = float(radius_px)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"the field radius must be a number of pixels, got {radius_px!r}"
+        ) from None
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f"the field radius must be a positive number of pixels, got {radius_px!r}")
+    centre = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+
+    def near(px):
+        px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            return np.linalg.norm(px - centre, axis=1) <= radius
+
+    def n_corners(views_px):
+        return sum(int(np.all(np.isfinite(c), axis=-1).sum()) for c in views_px)
+
+    cut = within_radius(obs, radius)
+    n_corner = n_corners(v.corners_px for v in obs.views) - n_corners(
+        v.corners_px for v in cut.views
+    )
+    n_stripe = sum(len(v.stripe_px) for v in obs.views) - sum(len(v.stripe_px) for v in cut.views)
+    n_gauge = 0
+    stage = obs.stage
+    if stage is not None:
+        frames = [np.asarray(f, dtype=np.float64).reshape(-1, 2) for f in stage.frames]
+        kept = [f[near(f)] for f in frames]
+        n_gauge = sum(len(f) for f in frames) - sum(len(f) for f in kept)
+        stage = StageScan(stage.delta_omega_deg, stage.gauge_radius_mm, kept)
+    table = obs.stage_target
+    if table is not None:
+        c = np.array(table.corners_px, dtype=np.float64)
+        seen = np.all(np.isfinite(c), axis=-1)
+        far = seen & ~near(c).reshape(seen.shape)
+        c[far] = np.nan
+        lines = [np.asarray(s, dtype=np.float64).reshape(-1, 2) for s in table.stripe_px]
+        kept = tuple(s[near(s)] for s in lines)
+        n_corner += int(far.sum())
+        n_stripe += sum(len(s) for s in lines) - sum(len(s) for s in kept)
+        table = dataclasses.replace(table, corners_px=c, stripe_px=kept)
+    counts = {
+        "field_radius_px": radius,
+        "corners_beyond_radius": n_corner,
+        "stripe_beyond_radius": n_stripe,
+        "gauge_beyond_radius": n_gauge,
+    }
+    return dataclasses.replace(cut, stage=stage, stage_target=table), counts
 
 
 # ----------------------------------------------------------------------------- outliers

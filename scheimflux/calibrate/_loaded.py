@@ -23,7 +23,7 @@ import numpy as np
 
 from ..geometry._transforms import Pose
 from ..io._calibration import CalibrationFileError
-from ._gates import screen_observations
+from ._gates import screen_field, screen_observations
 from ._model import (
     CalibrationData,
     SystemParams,
@@ -148,6 +148,19 @@ def _sigma_stripe_mm(diag: dict, params, obs) -> float:
     return float(px) * pixel_footprint_mm(params.camera, params.board_poses, obs)
 
 
+def _field_radius(diag: dict) -> float | None:
+    """The field radius the calibration was made inside (`calibrate(max_radius_px=)`);
+    None: the whole sensor."""
+    r = diag.get("field_radius_px")
+    if r is None:
+        return None
+    if not isinstance(r, (int, float)) or isinstance(r, bool) or not 0 < r < math.inf:
+        raise CalibrationFileError(
+            f"diagnostics.field_radius_px must be a positive number of pixels, got {r!r}"
+        )
+    return float(r)
+
+
 def restore_calibration(
     *,
     params: SystemParams,
@@ -178,6 +191,9 @@ def restore_calibration(
         # as `calibrate` did: off-sensor pixels screened out, then the residual arrays
         # with the file's weights and the rejection pass's left-out observations
         observations, _ = screen_observations(observations)
+        radius = _field_radius(diag)
+        if radius is not None:  # calibrated inside a radius of the sensor's centre
+            observations, _ = screen_field(observations, radius)
         data = make_data(
             observations,
             sigma_corner_px=float(diag.get("sigma_corner_px", 0.03)),

@@ -10,7 +10,7 @@ import numpy as np
 from ..camera._noncentral import ThickLensNonCentral
 from ..camera._pinhole import Pinhole
 from ..camera._thick_lens import ThickLensScheimpflug
-from ._coverage import coverage_from_data
+from ._coverage import clip_to_radius, coverage_from_data
 from ._gates import (
     Quality,
     QualityError,
@@ -35,6 +35,9 @@ def _gated(
     if notes:
         quality = dataclasses.replace(quality, warnings=quality.warnings + tuple(notes))
     coverage = coverage_from_data(cal.data, cal.sensor_size)
+    radius = rejected.get("field_radius_px")
+    if coverage is not None and radius is not None:
+        coverage = clip_to_radius(coverage, radius)
     cal = dataclasses.replace(cal, quality=quality, coverage=coverage)
     if throw and not quality.passed:
         raise QualityError(

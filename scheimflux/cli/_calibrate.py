@@ -138,6 +138,16 @@ def register(subparsers) -> None:
         "solve once more; 0: no rejection pass (default: %(default)s)",
     )
     p.add_argument(
+        "--max-radius-px",
+        type=float,
+        default=None,
+        metavar="R",
+        help="calibrate inside R px of the sensor's centre: corners, stripe and gauge "
+        "pixels beyond it are left out and counted (a lens that vignettes the outer field; "
+        "docs/noncentral.md); points reconstructed outside the data kept are flagged as "
+        "extrapolated (default: the whole sensor)",
+    )
+    p.add_argument(
         "--max-steps", type=int, default=300, help="LM steps per solve (default: %(default)s)"
     )
     p.add_argument(
@@ -211,7 +221,7 @@ def _check_opencv(args) -> None:
 
 
 def _check(args) -> None:
-    require_positive(args, "sigma_corner_px", "sigma_stripe_px")
+    require_positive(args, "sigma_corner_px", "sigma_stripe_px", "max_radius_px")
     require_positive(args, "robust", "reject", zero_ok=True)
     _check_nominal(args)
     _check_opencv(args)
@@ -298,6 +308,7 @@ def run(args) -> int:
             robust=args.robust or None,
             reject=args.reject or None,
             max_steps=args.max_steps,
+            max_radius_px=args.max_radius_px,
             throw=False,
             **({"opencv_flags": args.opencv_flags} if args.model == "opencv" else {}),
         )

@@ -21,7 +21,8 @@
  "diagnostics": {"reprojection_rms_px": ..., "laser_plane_rms_mm": ..., "gauge_rms_mm": ...,
                  "solves": {"camera": {"steps": 12, "converged": true, "time_s": 3.1}, ...},
                  "frozen": ["camera.dx", ...], "converged": true,
-                 "sigma_corner_px": 0.03, "sigma_stripe_mm": 1.4e-4, "robust": null, ...},
+                 "sigma_corner_px": 0.03, "sigma_stripe_mm": 1.4e-4, "robust": null,
+                 "field_radius_px": 900.0, ...},                    # optional
  "software": {"name": "scheimflux", "version": "0.1.0"}}
 ```
 
@@ -241,6 +242,10 @@ def _weights(cal) -> dict:
         "sigma_stripe_mm": float(data.sigma_stripe_mm),
         "robust": data.robust,
     }
+    quality = getattr(cal, "quality", None)
+    radius = getattr(quality, "rejected", {}).get("field_radius_px")
+    if radius is not None:  # calibrated inside this radius; re-applied on reading
+        out["field_radius_px"] = float(radius)
     left_out = getattr(cal, "left_out", None)
     if left_out is not None:  # the rejection pass's choice, re-applied on reading
         out["left_out"] = {k: np.asarray(v, dtype=int).tolist() for k, v in left_out.items()}
