@@ -251,27 +251,31 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
 # Grey PNG: over the black print the line is 12 grey levels in noise 1, ~0.05 px std per
 # centre after Steger's smoothing: every centre within 0.3 px (6 stds); measured 98 % of
 # the line at 0.044-0.061 px RMS, at most 0.21 px (the stripe image alone: 44-52 %).
-# Colour JPEG: the line over the dark print is a few grey levels of the JPEG's chroma,
-# kept at half resolution and quantised (0.5-1.1 px off there): only the centres over
-# the bright print, away from its edges, are kept, all within 0.5 px (measured
-# 0.04-0.09 px RMS, at most 0.36 px; 48-49 % of the line on the checkerboard, 12-15 % on
-# the ChArUco board, whose line runs mostly over black marker bits; the stripe image
-# alone: 5-38 centres per view 0.5-1 px off).
-# Coverage bounds: about 2/3 of the measured.
+# Colour JPEG: read in luma (full resolution; the laser's chroma is half resolution and
+# quantised), the centres on the dark print dropped (there the line is 3-4 luma levels:
+# 0.14-0.25 px RMS). Measured over three poses (183, 188, 178 deg; this test is the
+# first): checkerboard 50-51 % at 0.023-0.025 px RMS, ChArUco 20-21 % (104-106 centres)
+# at 0.053-0.074, circle grid 85-88 % (443-446) at 0.037-0.046, none over 0.30 px. Read
+# in the laser's channel (the dark print and its edges dropped) the same scenes gave
+# 0.040-0.050 px RMS (checkerboard), 14-16 % / 0.065-0.090 (ChArUco), 71-73 % /
+# 0.043-0.063 (circle grid), up to 0.43 px: the bounds below fail it on every colour
+# JPEG case. Bounds: coverage ~0.9 of the measured (the spread over poses is 1-2 %), RMS
+# ~1.1-1.3 x the largest measured over the poses, worst 0.4 px (5 x 0.08).
 @pytest.mark.parametrize(
-    "target, ext, min_cover, max_err",
+    "target, ext, min_cover, max_err, max_rms",
     [
-        (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3),
-        (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3),
-        (Checkerboard(7, 6, 0.2), "jpg", 0.33, 0.5),
-        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.08, 0.5),
-        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.33, 0.5),
+        (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3, 0.08),
+        (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3, 0.08),
+        (Checkerboard(7, 6, 0.2), "jpg", 0.45, 0.4, 0.032),
+        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.18, 0.4, 0.08),
+        (CircleGrid(7, 6, 0.2, 0.08), "jpg", 0.78, 0.4, 0.055),
+        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.45, 0.4, 0.032),
     ],
     ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour",
-         "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
+         "circles-jpg-colour", "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
 )
 def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ext, min_cover,
-                                                       max_err):  # fmt: skip
+                                                       max_err, max_rms):  # fmt: skip
     rig, truth, _ = _scene(cam, target)
     mixed = ext == "png-board-jpg-stripe"  # the line's chroma is the stripe file's
     ext = "jpg" if mixed else ext
@@ -288,10 +292,9 @@ def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ex
     d = _near_line(st, line)
     assert len(st) > min_cover * np.ptp(line[:, 0]), len(st)
     assert d.max() < max_err, d.max()
-    if ext == "png":
-        assert np.sqrt(np.mean(d**2)) < 0.08, np.sqrt(np.mean(d**2))
-    else:
-        assert any("on the dark print or a print edge" in n for n in report.notes), report.notes
+    assert np.sqrt(np.mean(d**2)) < max_rms, np.sqrt(np.mean(d**2))
+    if ext == "jpg":
+        assert any("on the dark print dropped" in n for n in report.notes), report.notes
 
 
 def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):
