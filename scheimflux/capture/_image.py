@@ -188,7 +188,8 @@ def line_and_points(
     reach too, grown by a chroma block.
     A pair's stripe image is read against its board image, a laser-off image of the same
     pose at its own exposure and room light (`background_gain="auto"`); a colour JPEG
-    pair drops its centres on the dark print and next to its edges (`_dark_print`).
+    pair is read in luma (`channel="grey"`) and drops its centres on the dark print
+    (`_dark_print`).
 
     **Arguments:**
     - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
