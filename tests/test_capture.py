@@ -252,25 +252,27 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
 # centre after Steger's smoothing: every centre within 0.3 px (6 stds); measured 98 % of
 # the line at 0.044-0.061 px RMS, at most 0.21 px (the stripe image alone: 44-52 %).
 # Colour JPEG: read in luma (full resolution; the laser's chroma is half resolution and
-# quantised), the centres on the dark print dropped (there the line is 3-4 luma levels:
-# 0.14-0.25 px RMS). Measured over three poses (183, 188, 178 deg; this test is the
-# first) and three noise seeds (1-3; this test is 1): checkerboard 257-260 centres at
-# 0.022-0.032 px RMS, ChArUco 104-107 at 0.042-0.074, circle grid 436-448 at
-# 0.037-0.046, none over 0.32 px (the line's span ~520 px). Read in the laser's channel
-# (red-minus-others; the dark print and its edges dropped), seed 1 gave 250-259
-# centres at 0.040-0.050 px RMS (checkerboard), 68-80 at 0.065-0.090 (ChArUco), 368-371
-# at 0.043-0.063 (circle grid), up to 0.43 px: the bounds below fail it on every colour
-# JPEG case (view 0: 0.040 px, 77 and 371 centres). Bounds: coverage ~0.9 of the fewest
-# measured, RMS 1.1-1.2 x the largest measured, worst 0.4 px (5 x 0.08).
+# quantised), the centres on the dark print or within 3 px of it across the line
+# dropped (there the line is 3-4 luma levels: 0.14-0.25 px RMS). Measured over three
+# poses (183, 188, 178 deg; this test is the first), three noise seeds (1-3; this test
+# is 1) and the stripe image's room light low, off and bright (seed 1): checkerboard
+# 253-260 centres at 0.020-0.034 px RMS, ChArUco 74-80 at 0.026-0.053, circle grid
+# 378-385 at 0.020-0.030, none over 0.27 px (the line's span ~520 px). Read in the
+# laser's channel (red-minus-others; the dark print and its edges dropped) the same
+# seed-1 scenes gave 0.040-0.051 px RMS (checkerboard), 0.057-0.095 (ChArUco),
+# 0.038-0.065 (circle grid), up to 0.52 px; view 0, room light low: 0.040, 0.090, 0.053
+# px: the RMS bounds below fail it on every colour JPEG case (its coverage was the same
+# within 3 %). Bounds: coverage ~0.9 of the fewest measured (0.65 for grey png: 2/3 of
+# 98 %), RMS 1.1-1.2 x the largest measured, worst 1.3 x the largest measured.
 @pytest.mark.parametrize(
     "target, ext, min_cover, max_err, max_rms",
     [
         (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3, 0.08),
         (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3, 0.08),
-        (Checkerboard(7, 6, 0.2), "jpg", 0.45, 0.4, 0.036),
-        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.18, 0.4, 0.08),
-        (CircleGrid(7, 6, 0.2, 0.08), "jpg", 0.78, 0.4, 0.055),
-        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.45, 0.4, 0.036),
+        (Checkerboard(7, 6, 0.2), "jpg", 0.45, 0.35, 0.038),
+        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.13, 0.35, 0.06),
+        (CircleGrid(7, 6, 0.2, 0.08), "jpg", 0.65, 0.35, 0.035),
+        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.45, 0.35, 0.038),
     ],
     ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour",
          "circles-jpg-colour", "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
@@ -295,7 +297,7 @@ def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ex
     assert d.max() < max_err, d.max()
     assert np.sqrt(np.mean(d**2)) < max_rms, np.sqrt(np.mean(d**2))
     if ext == "jpg":
-        assert any("on the dark print dropped" in n for n in report.notes), report.notes
+        assert any("on the dark print or next to it" in n for n in report.notes), report.notes
 
 
 def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):

@@ -14,6 +14,7 @@ import dataclasses
 import os
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from ..stripe._image import channel_image, estimate_noise
@@ -39,10 +40,11 @@ __all__ = ["ImageLine", "find_target", "line_and_points"]
 # plateau of ~14 px for 5 px) falls to the noise ~2 FWHM from its centre.
 _LINE_REACH_FWHM = 6.0
 _BGR = {"blue": 0, "green": 1, "red": 2}
-# A colour JPEG pair is read in luma; centres where the board image's luma at the centre
-# is under `_DARK_PRINT` of its bright level (the 90th percentile on the board) lie on
-# the dark print (see `_dark_print`).
+# A colour JPEG pair is read in luma; centres where the board image's luma, within
+# `_DARK_REACH` px across the line, falls under `_DARK_PRINT` of its bright level (the
+# 90th percentile on the board) lie on the dark print or next to it (see `_dark_print`).
 _DARK_PRINT = 0.3
+_DARK_REACH = 3
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -121,21 +123,26 @@ def _pitch_px(corners: np.ndarray) -> float:
     return float(np.median(d.min(axis=1)))
 
 
-def _dark_print(board, mask: np.ndarray, uv: np.ndarray) -> np.ndarray:
+def _dark_print(board, mask: np.ndarray, uv: np.ndarray, orientation: str) -> np.ndarray:
     """Which centres `uv` of a colour JPEG pair's line, read in luma, lie on the dark
-    print: the board image's luma at the centre's pixel is under `_DARK_PRINT` of its
-    bright level. The laser adds 0.3 x its red level to luma, so over a 0.08 albedo
-    print the line is 3-4 grey levels in luma noise ~0.7 and its centres 0.14-0.25 px
-    RMS off the exact line, up to 0.66 px (checkerboard and ChArUco scenes); over the
-    bright print and next to its edges the centres kept were within 0.31 px, 0.02-0.07
-    px RMS. (The laser's colour, read in its own channel, lives in the JPEG's chroma,
-    kept at half resolution and quantised: next to a print edge too, its centres were
-    up to 1.3 px off.)"""
+    print or next to it: within `_DARK_REACH` px across the line (along the scan lines
+    of `orientation`), the board image's luma falls under `_DARK_PRINT` of its bright
+    level. The laser adds 0.3 x its red level to luma, so over a 0.08 albedo print the
+    line is 3-4 grey levels in luma noise ~0.7: its centres there were 0.14-0.25 px RMS
+    off the exact line, up to 0.66 px (checkerboard and ChArUco scenes), and with the
+    room light off in the stripe image those next to the print's edges up to 0.69 px
+    (a circle grid's dots 0.64 px). The centres kept were within 0.25 px, 0.02-0.04 px
+    RMS, with the room light low or off. (Read in the laser's own channel, the line's
+    colour lives in the JPEG's chroma, kept at half resolution and quantised: its
+    centres were up to 1.1 px off over the dark print, 1.3 px next to its edges.)"""
     plane = np.asarray(channel_image(np.asarray(board), "grey")[0], np.float32)
     bright = float(np.percentile(plane[mask], 90)) if mask.any() else float(plane.max())
+    r = _DARK_REACH
+    across = (2 * r + 1, 1) if orientation == "vertical-scan" else (1, 2 * r + 1)
+    low = cv2.erode(plane, np.ones(across, np.uint8))  # the darkest within reach
     iu = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, plane.shape[1] - 1)
     iv = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, plane.shape[0] - 1)
-    return plane[iv, iu] < _DARK_PRINT * bright
+    return low[iv, iu] < _DARK_PRINT * bright
 
 
 def find_target(image, off, target: Target, *, single: bool, min_points: int,
@@ -189,7 +196,7 @@ def line_and_points(
     A pair's stripe image is read against its board image, a laser-off image of the same
     pose at its own exposure and room light (`background_gain="auto"`); a colour JPEG
     pair is read in luma (`channel="grey"`) and drops its centres on the dark print
-    (`_dark_print`).
+    and next to it (`_dark_print`).
 
     **Arguments:**
     - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
@@ -276,13 +283,13 @@ def line_and_points(
             note("clipped line: its plateau read against the target drawn from its points")
             break  # the drawn laser-off image found the line
     if luma and len(out.stripe_uv):
-        dark = _dark_print(image, mask, out.stripe_uv)
+        dark = _dark_print(image, mask, out.stripe_uv, out.stripe.orientation)
         if dark.any():
             ok = ok.copy()
             ok[np.flatnonzero(ok)[dark]] = False
             out.stripe_uv = out.stripe.uv[ok]
-            note(f"{int(dark.sum())} stripe centre(s) on the dark print dropped (colour "
-                 "JPEG pair, read in luma)")  # fmt: skip
+            note(f"{int(dark.sum())} stripe centre(s) on the dark print or next to it "
+                 "dropped (colour JPEG pair, read in luma)")  # fmt: skip
     if len(out.stripe_uv) == 0 and out.stripe is not None:
         note("no laser line found on the board")
     if not shared:
