@@ -388,7 +388,8 @@ def extract_stripe(
       pixels), not by g x it. (In a colour JPEG pair the laser's own channel holds the
       line over the dark print as a few levels of half-resolution chroma, its centres
       there and next to print edges up to 1.3 px off; `scheimflux detect` reads such a
-      pair in luma, `channel="grey"`, and drops the centres on the dark print.)
+      pair in luma, `channel="grey"`, and drops the centres on the dark print and next
+      to it.)
     - `max_jump_px`: largest change of the centre between neighbouring scan lines within
       a segment; `None`: `max(2, width / 2)`.
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
