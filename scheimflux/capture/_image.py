@@ -132,9 +132,9 @@ def _dark_print(board, mask: np.ndarray, uv: np.ndarray, orientation: str) -> np
     off the exact line, up to 0.66 px (checkerboard and ChArUco scenes), and with the
     room light off in the stripe image those next to the print's edges up to 0.69 px
     (a circle grid's dots 0.64 px). The centres kept were within 0.27 px, 0.02-0.05 px
-    RMS, with the room light low, off or bright. (Read in the laser's own channel, the line's
-    colour lives in the JPEG's chroma, kept at half resolution and quantised: its
-    centres were up to 1.1 px off over the dark print, 1.3 px next to its edges.)"""
+    RMS, with the room light low, off or bright. (Read in the laser's own channel, the
+    line's colour lives in the JPEG's chroma, kept at half resolution and quantised:
+    its centres were up to 1.1 px off over the dark print, 1.3 px next to its edges.)"""
     plane = np.asarray(channel_image(np.asarray(board), "grey")[0], np.float32)
     bright = float(np.percentile(plane[mask], 90)) if mask.any() else float(plane.max())
     r = _DARK_REACH
