@@ -251,27 +251,34 @@ def test_pair_stripe_on_board_is_lit_by_the_albedo(cam, tmp_path):
 # Grey PNG: over the black print the line is 12 grey levels in noise 1, ~0.05 px std per
 # centre after Steger's smoothing: every centre within 0.3 px (6 stds); measured 98 % of
 # the line at 0.044-0.061 px RMS, at most 0.21 px (the stripe image alone: 44-52 %).
-# Colour JPEG: the line over the dark print is a few grey levels of the JPEG's chroma,
-# kept at half resolution and quantised (0.5-1.1 px off there): only the centres over
-# the bright print, away from its edges, are kept, all within 0.5 px (measured
-# 0.04-0.09 px RMS, at most 0.36 px; 48-49 % of the line on the checkerboard, 12-15 % on
-# the ChArUco board, whose line runs mostly over black marker bits; the stripe image
-# alone: 5-38 centres per view 0.5-1 px off).
-# Coverage bounds: about 2/3 of the measured.
+# Colour JPEG: read in luma (full resolution; the laser's chroma is half resolution and
+# quantised), the centres on the dark print or within 3 px of it across the line
+# dropped (there the line is 3-4 luma levels: 0.14-0.25 px RMS). Measured over three
+# poses (183, 188, 178 deg; this test is the first), three noise seeds (1-3; this test
+# is 1) and the stripe image's room light low, off and bright (seed 1): checkerboard
+# 253-260 centres at 0.020-0.034 px RMS, ChArUco 74-80 at 0.026-0.053, circle grid
+# 378-385 at 0.020-0.030, none over 0.27 px (the line's span ~520 px). Read in the
+# laser's channel (red-minus-others; the dark print and its edges dropped) the same
+# seed-1 scenes gave 0.040-0.051 px RMS (checkerboard), 0.057-0.095 (ChArUco),
+# 0.038-0.065 (circle grid), up to 0.52 px; view 0, room light low: 0.040, 0.090, 0.053
+# px: the RMS bounds below fail it on every colour JPEG case (its coverage was the same
+# within 3 %). Bounds: coverage ~0.9 of the fewest measured (0.65 for grey png: 2/3 of
+# 98 %), RMS 1.1-1.2 x the largest measured, worst 1.3 x the largest measured.
 @pytest.mark.parametrize(
-    "target, ext, min_cover, max_err",
+    "target, ext, min_cover, max_err, max_rms",
     [
-        (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3),
-        (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3),
-        (Checkerboard(7, 6, 0.2), "jpg", 0.33, 0.5),
-        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.08, 0.5),
-        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.33, 0.5),
+        (Checkerboard(7, 6, 0.2), "png", 0.65, 0.3, 0.08),
+        (CharucoBoard(8, 6, 0.2, 0.14), "png", 0.65, 0.3, 0.08),
+        (Checkerboard(7, 6, 0.2), "jpg", 0.45, 0.35, 0.038),
+        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", 0.13, 0.35, 0.06),
+        (CircleGrid(7, 6, 0.2, 0.08), "jpg", 0.65, 0.35, 0.035),
+        (Checkerboard(7, 6, 0.2), "png-board-jpg-stripe", 0.45, 0.35, 0.038),
     ],
     ids=["checkerboard-png", "charuco-png", "checkerboard-jpg-colour", "charuco-jpg-colour",
-         "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
+         "circles-jpg-colour", "checkerboard-png-board-jpg-stripe-colour"],  # fmt: skip
 )
 def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ext, min_cover,
-                                                       max_err):  # fmt: skip
+                                                       max_err, max_rms):  # fmt: skip
     rig, truth, _ = _scene(cam, target)
     mixed = ext == "png-board-jpg-stripe"  # the line's chroma is the stripe file's
     ext = "jpg" if mixed else ext
@@ -288,10 +295,9 @@ def test_pair_line_on_the_print_read_against_the_board(cam, tmp_path, target, ex
     d = _near_line(st, line)
     assert len(st) > min_cover * np.ptp(line[:, 0]), len(st)
     assert d.max() < max_err, d.max()
-    if ext == "png":
-        assert np.sqrt(np.mean(d**2)) < 0.08, np.sqrt(np.mean(d**2))
-    else:
-        assert any("on the dark print or a print edge" in n for n in report.notes), report.notes
+    assert np.sqrt(np.mean(d**2)) < max_rms, np.sqrt(np.mean(d**2))
+    if ext == "jpg":
+        assert any("on the dark print or next to it" in n for n in report.notes), report.notes
 
 
 def test_single_layout_laser_peak_is_a_fraction_of_full_scale(cam, tmp_path):

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from ..stripe._image import estimate_noise
+from ..stripe._image import channel_image, estimate_noise
 from ..targets._circles import CircleGrid
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
@@ -40,13 +40,11 @@ __all__ = ["ImageLine", "find_target", "line_and_points"]
 # plateau of ~14 px for 5 px) falls to the noise ~2 FWHM from its centre.
 _LINE_REACH_FWHM = 6.0
 _BGR = {"blue": 0, "green": 1, "red": 2}
-# A colour JPEG pair: centres where the board image's laser plane, within `_DARK_REACH`
-# px across the line, is under `_DARK_PRINT` of its bright level (the 90th percentile on
-# the board) or under `_EDGE_RATIO` of its own brightest there lie on the dark print or
-# on a print edge (see `_dark_print`).
+# A colour JPEG pair is read in luma; centres where the board image's luma, within
+# `_DARK_REACH` px across the line, falls under `_DARK_PRINT` of its bright level (the
+# 90th percentile on the board) lie on the dark print or next to it (see `_dark_print`).
 _DARK_PRINT = 0.3
 _DARK_REACH = 3
-_EDGE_RATIO = 0.5
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -125,33 +123,26 @@ def _pitch_px(corners: np.ndarray) -> float:
     return float(np.median(d.min(axis=1)))
 
 
-def _dark_print(
-    board, channel: str, mask: np.ndarray, uv: np.ndarray, orientation: str
-) -> np.ndarray:
-    """Which centres `uv` of a colour JPEG pair's line lie on the dark print or next to
-    a print edge: within `_DARK_REACH` px across the line (along the scan lines of
-    `orientation`), the board image's plane of the laser's colour falls under
-    `_DARK_PRINT` of its bright level, or under `_EDGE_RATIO` of its brightest there.
-    There the line is a few grey levels of the JPEG's chroma, which it keeps at half
-    resolution and quantised: read against the board image, the line over a 0.08
-    albedo print was 0.5-1.1 px off the exact line (checkerboard and ChArUco scenes),
-    next to a circle grid's dots up to 0.78 px; the centres kept were within 0.36 px."""
-    base = channel.removesuffix("-minus-others")
-    img = np.asarray(board)
-    plane = img[:, :, _BGR[base]] if img.ndim == 3 and base in _BGR else img
-    if img.ndim == 3 and base not in _BGR:
-        plane = img[:, :, :3].max(axis=2)
-    plane = np.ascontiguousarray(plane, dtype=np.float32)
+def _dark_print(board, mask: np.ndarray, uv: np.ndarray, orientation: str) -> np.ndarray:
+    """Which centres `uv` of a colour JPEG pair's line, read in luma, lie on the dark
+    print or next to it: within `_DARK_REACH` px across the line (along the scan lines
+    of `orientation`), the board image's luma falls under `_DARK_PRINT` of its bright
+    level. The laser adds 0.3 x its red level to luma, so over a 0.08 albedo print the
+    line is 3-4 grey levels in luma noise ~0.7: its centres there were 0.14-0.25 px RMS
+    off the exact line, up to 0.66 px (checkerboard and ChArUco scenes), and with the
+    room light off in the stripe image those next to the print's edges up to 0.69 px
+    (a circle grid's dots 0.64 px). The centres kept were within 0.27 px, 0.02-0.05 px
+    RMS, with the room light low, off or bright. (Read in the laser's own channel, the
+    line's colour lives in the JPEG's chroma, kept at half resolution and quantised:
+    its centres were up to 1.1 px off over the dark print, 1.3 px next to its edges.)"""
+    plane = np.asarray(channel_image(np.asarray(board), "grey")[0], np.float32)
     bright = float(np.percentile(plane[mask], 90)) if mask.any() else float(plane.max())
-    # the darkest and brightest pixels within `_DARK_REACH` px across the line
     r = _DARK_REACH
     across = (2 * r + 1, 1) if orientation == "vertical-scan" else (1, 2 * r + 1)
-    low = cv2.erode(plane, np.ones(across, np.uint8))
-    high = cv2.dilate(plane, np.ones(across, np.uint8))
+    low = cv2.erode(plane, np.ones(across, np.uint8))  # the darkest within reach
     iu = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, plane.shape[1] - 1)
     iv = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, plane.shape[0] - 1)
-    lo, hi = low[iv, iu], high[iv, iu]
-    return (lo < _DARK_PRINT * bright) | (lo < _EDGE_RATIO * hi)
+    return low[iv, iu] < _DARK_PRINT * bright
 
 
 def find_target(image, off, target: Target, *, single: bool, min_points: int,
@@ -204,7 +195,8 @@ def line_and_points(
     reach too, grown by a chroma block.
     A pair's stripe image is read against its board image, a laser-off image of the same
     pose at its own exposure and room light (`background_gain="auto"`); a colour JPEG
-    pair drops its centres on the dark print and next to its edges (`_dark_print`).
+    pair is read in luma (`channel="grey"`) and drops its centres on the dark print
+    and next to it (`_dark_print`).
 
     **Arguments:**
     - `image`, `off`, `opened`: as for and from `find_target`; `simg`: the image the
@@ -242,6 +234,10 @@ def line_and_points(
     # (signal image, holes, laser-off image, its gain); a pair's board image is the
     # laser-off image of its stripe image, at its own exposure and room light
     pair = not single and off is None and simg is not image
+    # a colour JPEG pair in luma: the board is taken out by the difference (no colour
+    # needed to tell the line from it) and JPEG keeps luma at full resolution, the
+    # laser's colour (chroma) at half and quantised (see `_dark_print`)
+    luma = pair and jpeg and np.ndim(simg) == 3
     attempts = [(simg, None, off, 1.0)]
     if pair:
         ref = image
@@ -275,7 +271,7 @@ def line_and_points(
         try:
             res_i, inside = board_stripe(
                 signal, mask, width_px=stripe_width_px, background=background, holes=holes,
-                background_gain=gain,
+                background_gain=gain, channel="grey" if luma else "auto",
             )  # fmt: skip
         except ValueError as err:
             note(f"no stripe extracted: {err}")
@@ -286,15 +282,14 @@ def line_and_points(
         if background is not None and off is None and not pair and len(out.stripe_uv):
             note("clipped line: its plateau read against the target drawn from its points")
             break  # the drawn laser-off image found the line
-    if pair and jpeg and np.ndim(simg) == 3 and len(out.stripe_uv):
-        dark = _dark_print(image, out.stripe.channel, mask, out.stripe_uv,
-                           out.stripe.orientation)  # fmt: skip
+    if luma and len(out.stripe_uv):
+        dark = _dark_print(image, mask, out.stripe_uv, out.stripe.orientation)
         if dark.any():
             ok = ok.copy()
             ok[np.flatnonzero(ok)[dark]] = False
             out.stripe_uv = out.stripe.uv[ok]
-            note(f"{int(dark.sum())} stripe centre(s) on the dark print or a print edge "
-                 "dropped (colour JPEG)")  # fmt: skip
+            note(f"{int(dark.sum())} stripe centre(s) on the dark print or next to it "
+                 "dropped (colour JPEG pair, read in luma)")  # fmt: skip
     if len(out.stripe_uv) == 0 and out.stripe is not None:
         note("no laser line found on the board")
     if not shared:

@@ -85,11 +85,13 @@ def board_stripe(
     background: Any = None,
     holes: np.ndarray | None = None,
     background_gain: float | int | str = 1.0,
+    channel: str = "auto",
 ):
     """The laser line on the board: `extract_stripe` inside the board region `mask`
-    (colour images: the laser's channel, chosen by the extractor), in the difference
-    from the laser-off image `background` when there is one (`background_gain`: as for
-    `extract_stripe`; `"auto"` for a pair's board image, taken at its own exposure).
+    (colour images: the laser's channel, chosen by the extractor unless `channel` names
+    one), in the difference from the laser-off image `background` when there is one
+    (`background_gain`: as for `extract_stripe`; `"auto"` for a pair's board image,
+    taken at its own exposure).
 
     This is the single place where `detect` extracts board stripes. The extractor accepts
     ridges only (checker edges, dots and marker borders are refused) and returns no centre
@@ -114,7 +116,8 @@ def board_stripe(
     best = None
     for img, bg in candidates:
         result = extract_stripe(
-            img, width_px=width_px, mask=mask, background=bg, background_gain=background_gain
+            img, width_px=width_px, mask=mask, background=bg, background_gain=background_gain,
+            channel=channel,
         )
         uv = result.uv
         inside = np.zeros(len(uv), bool)

@@ -385,9 +385,11 @@ def extract_stripe(
       off), g fitted per colour plane as a smooth map over the image (inside `mask`),
       the laser line left out (`_gain.py`); or a number. The image less g x the
       background is divided by the background's own level (with a floor for its dark
-      pixels), not by g x it. (In a colour JPEG pair the line over the dark print is a
-      few levels of half-resolution chroma and its centres there can be 0.5-1 px off:
-      `scheimflux detect` drops them, this function alone does not.)
+      pixels), not by g x it. (In a colour JPEG pair the laser's own channel holds the
+      line over the dark print as a few levels of half-resolution chroma, its centres
+      there and next to print edges up to 1.3 px off; `scheimflux detect` reads such a
+      pair in luma, `channel="grey"`, and drops the centres on the dark print and next
+      to it.)
     - `max_jump_px`: largest change of the centre between neighbouring scan lines within
       a segment; `None`: `max(2, width / 2)`.
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
