@@ -161,7 +161,7 @@ def write_scene_images(
     ext: str = "png",
     colour: bool = False,
     jpeg_quality: int = 95,
-    ambient: str = "low",
+    ambient: str | float = "low",
     ambient_level: float = 0.55,
     laser_peak: float = 0.6,
     stripe_width_px: float = 5.0,
@@ -187,7 +187,7 @@ def write_scene_images(
     - `colour`: 3-channel BGR images, red laser.
     - `jpeg_quality`: JPEG quality (0–100).
     - `ambient`: background of the stripe images (pair layout, scan), `"dark"`, `"low"`
-      or `"bright"`.
+      or `"bright"`, or a uniform level (fraction of full scale; 0: room light off).
     - `ambient_level`, `laser_peak`: room light and laser peak (fractions of full scale
       on a white surface) of the single layout; a `laser_peak` far above
       `1 - ambient_level` renders an overexposed line, clipped into a plateau wider than
