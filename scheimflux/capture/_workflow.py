@@ -210,9 +210,10 @@ def detect_captures(
             elif mo.displacement_px > MOVED_PX:
                 if len(stripe_uv):
                     stripe_uv = np.zeros((0, 2))
-                note(cv, f"the board moved {mo.displacement_px:.2f} px from {b_name} to "
-                         f"{s_name} (more than {MOVED_PX} px): stripe refused, board points "
-                         "kept")  # fmt: skip
+                by = (f"{mo.displacement_px:.2f} px" if np.isfinite(mo.displacement_px)
+                      else f"by an unknown amount ({mo.why})")  # fmt: skip
+                note(cv, f"the board moved {by} from {b_name} to {s_name} (more than "
+                         f"{MOVED_PX} px): stripe refused, board points kept")  # fmt: skip
         if line.reason:
             if preview_dir is not None:
                 report.previews.append(_preview(preview_dir, cv, image, corners, line.hull,
