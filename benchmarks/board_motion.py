@@ -47,7 +47,7 @@ def accuracy(ambient) -> None:
     targets = {"checkerboard": Checkerboard(7, 6, 0.2), "charuco": CharucoBoard(8, 6, 0.2, 0.14),
                "circles": CircleGrid(7, 6, 0.2, 0.08)}  # fmt: skip
     print("target ext motion(dx_mm,dy_mm,rot_deg) true_px measured_px err_px gain spread_px "
-          "cpu_s centres_rms_px centres_max_px")  # fmt: skip
+          "cpu_s centres_rms_px centres_max_px correlation")  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         for name, t in targets.items():
             rig, truth, _ = _scene(cam, t)
@@ -79,7 +79,8 @@ def accuracy(ambient) -> None:
                     dl = _near_line(st, lt) if len(st) else np.array([np.nan])
                     print(f"{name} {ext} {mo} {tmax:.4f} {m.displacement_px:.4f} {err:.4f} "
                           f"{m.gain:.3f} {m.spread_px:.4f} {cpu:.3f} "
-                          f"{np.sqrt(np.mean(dl**2)):.3f} {np.max(dl):.3f} {m.why}",
+                          f"{np.sqrt(np.mean(dl**2)):.3f} {np.max(dl):.3f} "
+                          f"{m.correlation:.3f} {m.why}",
                           flush=True)  # fmt: skip
 
 

@@ -37,6 +37,9 @@ _AFFINE_SPREAD = 3.0
 # The laser line's pixels left out of a grey stripe image: within this many FWHM of its
 # centres (and 3 px more, for a board that moved).
 _LINE_FWHM = 1.5
+# Below this correlation of the registered images the print in the stripe image is not
+# the board image's (the board moved beyond a small warp): refused as moved.
+_MIN_CORRELATION = 0.5
 _CROP_MARGIN = 8  # px around the board region kept for the warp
 
 
@@ -56,6 +59,7 @@ class BoardMotion:
     - `why`: why it was not measured ("" when it was).
     - `points_uv`: `(M, 2)` each target point's displacement (NaN: not found, or not
       checked).
+    - `correlation`: ECC's correlation of the registered images (1: identical).
     """
 
     checked: bool
@@ -65,6 +69,7 @@ class BoardMotion:
     spread_px: float
     why: str = ""
     points_uv: np.ndarray | None = None
+    correlation: float = float("nan")
 
 
 def _plane(img: np.ndarray) -> np.ndarray:
@@ -114,11 +119,10 @@ def board_motion(
 
     **Returns:** [`BoardMotion`][].
     """
-    b = _plane(board)
-    s = _plane(stripe_image)
-    if np.ndim(stripe_image) == 3 and np.ndim(board) == 2:
-        pass  # the channel minimum of the stripe image against the grey board
-    elif np.ndim(board) == 3 and np.ndim(stripe_image) == 2:
+    # a colour image's channel minimum (a laser of one colour left out); a colour board
+    # image beside a grey stripe image: its mean over the channels (as the line's reading)
+    b, s = _plane(board), _plane(stripe_image)
+    if np.ndim(board) == 3 and np.ndim(stripe_image) == 2:
         b = np.asarray(board, np.float32)[:, :, :3].mean(axis=2)
     allpts = np.asarray(corners, np.float64).reshape(-1, 2)
     found = np.all(np.isfinite(allpts), axis=1)
@@ -132,9 +136,8 @@ def board_motion(
     v0, v1 = max(int(vv.min()) - _CROP_MARGIN, 0), min(int(vv.max()) + _CROP_MARGIN + 1, h)
     u0, u1 = max(int(uu.min()) - _CROP_MARGIN, 0), min(int(uu.max()) + _CROP_MARGIN + 1, w)
     b, s, m = b[v0:v1, u0:u1], s[v0:v1, u0:u1], mask[v0:v1, u0:u1]
-    line = np.zeros(m.shape, bool)
-    if np.ndim(stripe_image) == 2:  # a grey line: its pixels left out
-        line = _line_band(mask.shape, stripe, width_px)[v0:v1, u0:u1]
+    # the line's pixels left out (a colour JPEG keeps some of the line in every channel)
+    line = _line_band(mask.shape, stripe, width_px)[v0:v1, u0:u1]
     noise_b = estimate_noise(np.asarray(laser_free(board)))
     noise_s = estimate_noise(np.asarray(laser_free(stripe_image)))
     g = fit_gain(s, b, m & ~line, noise_b)
@@ -158,7 +161,7 @@ def board_motion(
     warp = np.eye(2, 3, dtype=np.float32)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-7)
     try:
-        _, warp = cv2.findTransformECC(t, s, warp, cv2.MOTION_AFFINE, crit,
+        rho, warp = cv2.findTransformECC(t, s, warp, cv2.MOTION_AFFINE, crit,
                                        inner.astype(np.uint8), 3)  # fmt: skip
     except cv2.error:
         # the stripe image shows a print (the gain above) that matches no warp of the
@@ -166,6 +169,10 @@ def board_motion(
         return BoardMotion(True, float("inf"), nan2, gain, float(spread),
                            "the print in the stripe image matches no small warp of the "
                            "board image's")  # fmt: skip
+    if not rho >= _MIN_CORRELATION:
+        return BoardMotion(True, float("inf"), nan2, gain, float(spread),
+                           f"the print in the stripe image matches the board image's warped "
+                           f"with a correlation of only {rho:.2f}")  # fmt: skip
     local = pts - np.array([u0, v0])
     moved = local @ warp[:, :2].T.astype(np.float64) + warp[:, 2].astype(np.float64)
     d = moved - local
@@ -174,4 +181,4 @@ def board_motion(
     per = np.full(allpts.shape, np.nan)
     per[found] = d
     return BoardMotion(True, disp, (float(mean[0]), float(mean[1])), gain, float(spread), "",
-                       per)  # fmt: skip
+                       per, float(rho))  # fmt: skip
