@@ -6,8 +6,10 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 - there is only a stripe image (`view_<k>_stripe.<ext>` without `view_<k>_board.<ext>`);
 - the target is not found, or fewer than `min_points` of its points are (ChArUco), or
   they lie on one line.
-A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
-its target points with an empty stripe list (a note says so). A view with an image of
+A kept view whose stripe image is missing or unreadable, or holds no laser line, or
+whose board moved between its pair's two images (`_motion.py`; more than `MOVED_PX`),
+keeps its target points with an empty stripe list (a note says so); a pair whose motion
+cannot be measured is noted as unchecked. A view with an image of
 another size than the first one read is dropped too (it cannot come from the same
 sensor), naming the file and both sizes: what the other views gave is kept. The
 per-image logic (target, laser line, points within its reach) is `_image.py`, shared
@@ -208,8 +210,7 @@ def detect_captures(
             if not mo.checked:
                 note(cv, f"board motion from {b_name} to {s_name} unchecked: {mo.why}")
             elif mo.displacement_px > MOVED_PX:
-                if len(stripe_uv):
-                    stripe_uv = np.zeros((0, 2))
+                stripe_uv, stripe_res = np.zeros((0, 2)), None  # (none drawn in a preview)
                 by = (f"{mo.displacement_px:.2f} px" if np.isfinite(mo.displacement_px)
                       else f"by an unknown amount ({mo.why})")  # fmt: skip
                 note(cv, f"the board moved {by} from {b_name} to {s_name} (more than "
