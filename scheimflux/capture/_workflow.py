@@ -6,8 +6,10 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 - there is only a stripe image (`view_<k>_stripe.<ext>` without `view_<k>_board.<ext>`);
 - the target is not found, or fewer than `min_points` of its points are (ChArUco), or
   they lie on one line.
-A kept view whose stripe image is missing or unreadable, or holds no laser line, keeps
-its target points with an empty stripe list (a note says so). A view with an image of
+A kept view whose stripe image is missing or unreadable, or holds no laser line, or
+whose board moved between its pair's two images (`_motion.py`; more than `MOVED_PX`),
+keeps its target points with an empty stripe list (a note says so); a pair whose motion
+cannot be measured is noted as unchecked. A view with an image of
 another size than the first one read is dropped too (it cannot come from the same
 sensor), naming the file and both sizes: what the other views gave is kept. The
 per-image logic (target, laser line, points within its reach) is `_image.py`, shared
@@ -26,6 +28,7 @@ from ..io._observations import DroppedView, Nominal, Observations, StageScan, Vi
 from ..targets._target import Target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
 from ._image import _is_jpeg, find_target, line_and_points
+from ._motion import MOVED_PX, BoardMotion, board_motion
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
 
@@ -40,6 +43,9 @@ class CaptureReport:
     - `notes`: one-line remarks (missing stripe images, ignored files, orientation notes).
     - `ignored`: file names in the folder that are not capture images.
     - `previews`: paths of the preview images written.
+    - `motion`: per pair view number, the board's motion from its board image to its
+      stripe image ([`BoardMotion`][]; `checked` False: it could not be measured, `why`
+      says why). A pair whose board moved more than `MOVED_PX` has its stripe refused.
     """
 
     kept: list[int] = dataclasses.field(default_factory=list)
@@ -47,6 +53,30 @@ class CaptureReport:
     notes: list[str] = dataclasses.field(default_factory=list)
     ignored: list[str] = dataclasses.field(default_factory=list)
     previews: list[str] = dataclasses.field(default_factory=list)
+    motion: dict[int, BoardMotion] = dataclasses.field(default_factory=dict)
+
+    def motion_summary(self) -> str:
+        """One line on the pairs' board motion ("" when no pair was checked or not)."""
+        if not self.motion:
+            return ""
+        ok = {k: m for k, m in self.motion.items() if m.checked}
+        moved = sorted(k for k, m in ok.items() if m.displacement_px > MOVED_PX)
+        unchecked = sorted(k for k, m in self.motion.items() if not m.checked)
+        parts = []
+        if ok:
+            worst = max(m.displacement_px for m in ok.values())
+            parts.append(f"checked in {len(ok)} pair(s), largest {worst:.3f} px")
+        if moved:
+            parts.append(f"moved more than {MOVED_PX} px in view(s) {_views(moved)}: "
+                         "their stripes refused")  # fmt: skip
+        if unchecked:
+            parts.append(f"UNCHECKED in view(s) {_views(unchecked)} (the stripe image shows "
+                         "the board too faintly: keep the room light on)")  # fmt: skip
+        return "board motion between board and stripe images: " + "; ".join(parts)
+
+
+def _views(ks: list[int]) -> str:
+    return ", ".join(str(k) for k in ks)
 
 
 class _SizeCheck:
@@ -171,6 +201,20 @@ def detect_captures(
                                margin_px=margin_px, min_points=min_points,
                                note=lambda text, cv=cv: note(cv, text))  # fmt: skip
         corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
+        if not single and simg is not None and simg is not image:
+            # a pair: did the board move between its two exposures?
+            mo = board_motion(image, simg, line.mask, corners, stripe_res,
+                              width_px=stripe_width_px)  # fmt: skip
+            report.motion[cv.view] = mo
+            b_name, s_name = os.path.basename(cv.board), os.path.basename(cv.stripe)
+            if not mo.checked:
+                note(cv, f"board motion from {b_name} to {s_name} unchecked: {mo.why}")
+            elif mo.displacement_px > MOVED_PX:
+                stripe_uv, stripe_res = np.zeros((0, 2)), None  # (none drawn in a preview)
+                by = (f"{mo.displacement_px:.2f} px" if np.isfinite(mo.displacement_px)
+                      else f"by an unknown amount ({mo.why})")  # fmt: skip
+                note(cv, f"the board moved {by} from {b_name} to {s_name} (more than "
+                         f"{MOVED_PX} px): stripe refused, board points kept")  # fmt: skip
         if line.reason:
             if preview_dir is not None:
                 report.previews.append(_preview(preview_dir, cv, image, corners, line.hull,

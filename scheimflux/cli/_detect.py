@@ -18,7 +18,11 @@ acircles (symmetric / asymmetric circle grids, --board = circles per row x rows,
 
 A view whose target is not found (or whose image cannot be read, or that has only a
 stripe image) is left out of the observations; it is printed with the reason and listed
-under "dropped_views" in the file. Every view records its source image names. The laser
+under "dropped_views" in the file. Every view records its source image names. In a pair
+the board's motion between its two images is measured where the stripe image shows the
+board by room light: a board that moved more than 0.1 px has its stripe refused (its
+points kept), and a pair whose stripe image is too dark to tell is reported unchecked
+(keep the room light on for the stripe images). The laser
 line is extracted only inside the board region (the target's outline, grown by
 --board-margin-px). --preview DIR writes view_<k>_preview.png overlays.
 
@@ -268,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
             f"dropped {len(report.dropped)} view(s): "
             + "; ".join(f"view {d.view}: {d.reason}" for d in report.dropped)
         )
+    if report.motion_summary():
+        print(report.motion_summary())
     if obs.stage_target is not None and obs.stage_target.dropped:
         print(
             f"dropped {len(obs.stage_target.dropped)} table step(s): "

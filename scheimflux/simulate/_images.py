@@ -49,6 +49,48 @@ def _board_to_pixel(rig, pose):
     return f
 
 
+def _moved(f, motion):
+    """The board-to-pixel map `f` of a board slid in its own plane by `motion` =
+    `(dx_mm, dy_mm, rot_deg)`: the print's point `xy` lies where the unmoved board's point
+    `R(rot) xy + (dx, dy)` was (the rotation about the board's origin)."""
+    dx, dy, rot = (float(m) for m in motion)
+    c, s = np.cos(np.radians(rot)), np.sin(np.radians(rot))
+    R = np.array([[c, -s], [s, c]])
+    d = np.array([dx, dy])
+
+    def g(xy: np.ndarray) -> np.ndarray:
+        return f(np.asarray(xy, dtype=np.float64) @ R.T + d)
+
+    return g
+
+
+def _motions(motion, n_views: int) -> list:
+    """`stripe_board_motion` as one `(dx_mm, dy_mm, rot_deg)` or None per view."""
+    if motion is None:
+        return [None] * n_views
+    m = list(motion)
+    if len(m) in (2, 3) and all(np.isscalar(x) for x in m):
+        m = [tuple(m)] * n_views
+    if len(m) != n_views:
+        raise ValueError(
+            f"stripe_board_motion: one (dx_mm, dy_mm[, rot_deg]) for all views or one per "
+            f"view ({n_views}), got {len(m)} entries"
+        )
+    out = []
+    for k, mk in enumerate(m):
+        if mk is None:
+            out.append(None)
+            continue
+        mk = tuple(float(x) for x in mk)
+        if len(mk) not in (2, 3) or not all(np.isfinite(mk)):
+            raise ValueError(
+                f"stripe_board_motion of view {k} must be finite (dx_mm, dy_mm[, rot_deg]), "
+                f"got {mk}"
+            )
+        out.append(mk + (0.0,) * (3 - len(mk)))
+    return out
+
+
 def _stripe_image(shape, pts, **kw) -> np.ndarray:
     """Render a stripe through the exact centres `pts` (K, 2) `(u, v)`; blank image if
     fewer than 2 finite points."""
@@ -119,7 +161,7 @@ def write_scene_images(
     ext: str = "png",
     colour: bool = False,
     jpeg_quality: int = 95,
-    ambient: str = "low",
+    ambient: str | float = "low",
     ambient_level: float = 0.55,
     laser_peak: float = 0.6,
     stripe_width_px: float = 5.0,
@@ -128,6 +170,7 @@ def write_scene_images(
     blur_sigma_px: float = 0.8,
     seed: int = 0,
     stripe_on_board: bool = True,
+    stripe_board_motion=None,
     overwrite: bool = False,
     verbose: bool = False,
 ) -> list[str]:
@@ -144,7 +187,7 @@ def write_scene_images(
     - `colour`: 3-channel BGR images, red laser.
     - `jpeg_quality`: JPEG quality (0–100).
     - `ambient`: background of the stripe images (pair layout, scan), `"dark"`, `"low"`
-      or `"bright"`.
+      or `"bright"`, or a uniform level (fraction of full scale; 0: room light off).
     - `ambient_level`, `laser_peak`: room light and laser peak (fractions of full scale
       on a white surface) of the single layout; a `laser_peak` far above
       `1 - ambient_level` renders an overexposed line, clipped into a plateau wider than
@@ -160,6 +203,13 @@ def write_scene_images(
       line is dimmer on the dark print and the print shows faintly (default, as a real
       pair capture); False: on a plain surface (albedo 1), which no real pair shows (its
       board image holds the print, its stripe image none).
+    - `stripe_board_motion`: the board slid in its own plane between a pair's two
+      exposures (pair layout, `stripe_on_board`): `(dx_mm, dy_mm[, rot_deg])` for every
+      view, or a sequence of them (None: not moved) per view. The stripe image's print
+      point `xy` lies where the board image's point `R(rot) xy + (dx, dy)` was (rotation
+      about the board's origin); the laser line stays where it was (the board's plane
+      and the laser plane do not move, so neither does their intersection). None
+      (default): the board did not move.
     - `overwrite`: replace existing files; otherwise any existing target raises
       `FileExistsError` before anything is written.
 
@@ -179,6 +229,9 @@ def write_scene_images(
     shape = (h, w)
     n_views = len(truth.board_poses)
     n_frames = len(truth.scan_px)
+    motions = _motions(stripe_board_motion, n_views)
+    if any(m is not None for m in motions) and not (layout == "pair" and stripe_on_board):
+        raise ValueError("stripe_board_motion needs layout='pair' and stripe_on_board=True")
     jobs = []
     for k in range(n_views):
         if layout == "single":
@@ -243,6 +296,8 @@ def write_scene_images(
                 img = on_board(f, k, float(ambient_level), float(laser_peak), s)
         elif kind == "stripe" and stripe_on_board:
             f = _board_to_pixel(rig, truth.board_poses[k])
+            if motions[k] is not None:
+                f = _moved(f, motions[k])
             img = on_board(f, k, _ambient_field(ambient, shape), _STRIPE_PEAK, s)
         else:
             pts = truth.stripe_px[k] if kind == "stripe" else truth.scan_px[k]

@@ -1,0 +1,146 @@
+"""A pair whose board moved between its board image and its stripe image: the motion is
+measured against the renderer's known motion (`write_scene_images(...,
+stripe_board_motion=)`, the board slid in its own plane), a board moved beyond
+`MOVED_PX` has its stripe refused with its points kept, an unmoved pair keeps its
+centres unchanged, and a stripe image without room light is reported unchecked."""
+
+import types
+
+import numpy as np
+import pytest
+from test_capture import _near_line, _scene
+
+import scheimflux as sf
+from scheimflux.capture import detect_captures
+from scheimflux.capture._folder import read_image
+from scheimflux.capture._image import find_target, line_and_points
+from scheimflux.capture._motion import MOVED_PX
+from scheimflux.cli._main import main
+from scheimflux.simulate._images import _board_to_pixel, _moved, write_scene_images
+from scheimflux.targets import CharucoBoard, Checkerboard, CircleGrid
+
+# The measured displacement of every target point against the renderer's within this:
+# half the refusal threshold, so that a measured motion refuses a pair only when the
+# true one is within 0.05 px of `MOVED_PX`. Measured on the 800 x 600 crop scenes
+# (checkerboard, ChArUco, circle grid; grey PNG and colour JPEG; motions 0.1-1.6 px):
+# at most 0.035 px off (0.005-0.025 px for an unmoved board).
+_ERR_PX = 0.5 * MOVED_PX
+
+
+@pytest.fixture(scope="module")
+def cam():
+    return sf.paper_thick_lens()
+
+
+def _true_motion(rig, truth, target, k, motion):
+    """The renderer's displacement (px) of every target point of view `k`."""
+    f = _board_to_pixel(rig, truth.board_poses[k])
+    xy = target.points_mm[:, :2]
+    return _moved(f, motion)(xy) - f(xy)
+
+
+@pytest.mark.parametrize(
+    "target, ext, motion, lo, hi, rots",
+    [
+        (Checkerboard(7, 6, 0.2), "png", (0.0007, 0.0005, 0.0), 0.25, 0.35, (183.0, 178.0)),
+        (CircleGrid(7, 6, 0.2, 0.08), "png", (0.0, 0.0, 0.035), 0.25, 0.35, (183.0,)),
+        (CharucoBoard(8, 6, 0.2, 0.14), "jpg", (0.005, -0.003, 0.05), 1.5, 2.5, (183.0,)),
+    ],
+    ids=["checkerboard-png-0.3px", "circles-png-0.3px-turned", "charuco-jpg-colour-2px"],
+)
+def test_moved_board_refuses_the_stripe(cam, tmp_path, target, ext, motion, lo, hi, rots):
+    """View 0's board slid between its exposures, view 1's (where rendered) did not:
+    view 0 keeps its points and loses its stripe (one line naming both files and the
+    displacement), view 1 keeps both; the measured displacement of every point matches
+    the renderer's within `_ERR_PX`."""
+    rig, truth, _ = _scene(cam, target, rots=rots)
+    write_scene_images(tmp_path, rig, target, truth, layout="pair", ext=ext,
+                       colour=ext == "jpg", seed=2,
+                       stripe_board_motion=[motion] + [None] * (len(rots) - 1))  # fmt: skip
+    true = _true_motion(rig, truth, target, 0, motion)
+    obs, report = detect_captures(tmp_path, target)
+    assert report.kept == list(range(len(rots)))
+    found = obs.views[0].corner_mask
+    worst = float(np.linalg.norm(true[found], axis=1).max())
+    assert lo < worst < hi, worst  # the render moved the board as meant
+    m = report.motion[0]
+    assert m.checked, m.why
+    err = np.linalg.norm(m.points_uv[found] - true[found], axis=1)
+    assert err.max() < _ERR_PX, err.max()
+    assert abs(m.displacement_px - worst) < _ERR_PX
+    # refused, its points kept (the views stay in file order)
+    assert len(obs.views[0].stripe_px) == 0
+    assert found.sum() >= 0.9 * len(target.points_mm)
+    line = [n for n in report.notes if "moved" in n and n.startswith("view 0:")]
+    assert len(line) == 1, report.notes
+    assert f"view_0_board.{ext}" in line[0] and f"view_0_stripe.{ext}" in line[0]
+    assert f"{m.displacement_px:.2f} px" in line[0]
+    assert "view(s) 0: their stripes refused" in report.motion_summary()
+    if len(rots) == 1:
+        return
+    # the unmoved view keeps its line, and its motion measures as none
+    assert report.motion[1].checked and report.motion[1].displacement_px < _ERR_PX
+    # (98 % of the line measured; test_capture's pair tests' bound)
+    assert len(obs.views[1].stripe_px) > 0.65 * np.ptp(truth.stripe_px[1][:, 0])
+
+
+def test_unmoved_pair_keeps_its_centres(cam, tmp_path):
+    """An unmoved pair passes the check and keeps the very centres the line extraction
+    gives (no change for good pairs), close to the exact line."""
+    target = Checkerboard(7, 6, 0.2)
+    rig, truth, _ = _scene(cam, target)
+    write_scene_images(tmp_path, rig, target, truth, layout="pair", seed=4)
+    obs, report = detect_captures(tmp_path, target)
+    m = report.motion[0]
+    assert m.checked and m.displacement_px < _ERR_PX, (m.displacement_px, m.why)
+    assert not any("moved" in n or "unchecked" in n for n in report.notes), report.notes
+    board = read_image(str(tmp_path / "view_0_board.png"))
+    stripe = read_image(str(tmp_path / "view_0_stripe.png"))
+    res, opened, _ = find_target(board, None, target, single=False, min_points=6,
+                                 mirrored=False)  # fmt: skip
+    line = line_and_points(board, None, stripe, opened, res, target, single=False, jpeg=False,
+                           stripe_width_px=None, margin_px=None, min_points=6,
+                           note=lambda t: None)  # fmt: skip
+    np.testing.assert_array_equal(obs.views[0].stripe_px, line.stripe_uv)
+    # and the line is where the renderer put it (as in test_capture's pair tests)
+    d = _near_line(obs.views[0].stripe_px, truth.stripe_px[0])
+    assert len(d) > 300 and d.max() < 0.3
+
+
+def test_dark_stripe_image_is_unchecked(cam, tmp_path, capsys):
+    """Room light off for the stripe image (g = 0): the board's motion cannot be seen, so
+    a moved board is not refused but reported unchecked, in the notes and in detect's
+    output."""
+    target = Checkerboard(7, 6, 0.2)
+    rig, truth, _ = _scene(cam, target)
+    write_scene_images(tmp_path, rig, target, truth, layout="pair", seed=4, ambient=0.0,
+                       stripe_board_motion=(0.005, -0.003, 0.05))  # fmt: skip
+    out = tmp_path / "obs.json"
+    assert main(["detect", str(tmp_path), "--board", "7x6", "--square-mm", "0.2",
+                 "--out", str(out)]) == 0  # fmt: skip
+    text = capsys.readouterr()
+    said = text.out + text.err
+    assert "UNCHECKED in view(s) 0" in said, said
+    assert "view_0_board.png to view_0_stripe.png unchecked" in said, said
+    obs, report = detect_captures(tmp_path, target)
+    m = report.motion[0]
+    assert not m.checked and not np.isfinite(m.displacement_px)
+    assert m.gain < 0.01  # the fitted room light: none
+    assert len(obs.views[0].stripe_px) > 300  # kept: nothing says it moved
+
+
+def test_stripe_board_motion_bad_input(tmp_path):
+    """One clear error for motions the writer cannot render (nothing written)."""
+    rig = types.SimpleNamespace(sensor_size=(8, 6))
+    truth = types.SimpleNamespace(board_poses=[None, None], stripe_px=[], scan_px=[])
+    board = Checkerboard(3, 3, 1.0)
+    with pytest.raises(ValueError, match=r"one per view \(2\), got 3 entries"):
+        write_scene_images(tmp_path, rig, board, truth,
+                           stripe_board_motion=[(0, 0, 0), None, None])  # fmt: skip
+    with pytest.raises(ValueError, match="view 1 must be finite"):
+        write_scene_images(tmp_path, rig, board, truth,
+                           stripe_board_motion=[None, (0.0, float("nan"))])  # fmt: skip
+    with pytest.raises(ValueError, match="needs layout='pair'"):
+        write_scene_images(tmp_path, rig, board, truth, layout="single",
+                           stripe_board_motion=(0.001, 0.0))  # fmt: skip
+    assert not list(tmp_path.iterdir())
