@@ -459,6 +459,7 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
     h2 = np.empty(n1 * nb, np.float32)
     sm = np.empty((spread + 2 * s_rows + 1) * nb, np.float32)
     dv = np.empty((5, (spread + kk) * nb), np.float32)
+    at = np.empty(tile, np.intp)  # per scan line of a tile: its flat offset in `dv`
     for t in range(n_tiles):
         j0 = t * tile
         n = min(tile, w - j0)
@@ -523,27 +524,40 @@ def band_window(scan, centre, k0, k1, k2, k_search, s_rows, colsrc, coltop, ccol
             if _plain(ccol[j], n_comp, COL_LANES):
                 for p in range(n_s):
                     sm[p * nb + i] = _col_value(h0, fs + p * nb + i, nb, k0, False, False)
-            off = centre[j] - lo
-            for o in range(kk):
-                win[0, o, j] = sm[(off + s_rows - k_search + o) * nb + i]
-                for d in range(5):
-                    win[d + 1, o, j] = dv[d, (off + o) * nb + i]
             strip_top[j] = lo - s_rows
-        for p in range(strip.shape[0]):
+        # each scan line's window rows, one window row of the tile at a time (stores
+        # along the scan lines: contiguous)
+        for i in range(n):
+            at[i] = (centre[j0 + i] - lo) * nb + i
+        for o in range(kk):
+            dst = win[0, o, j0 : j0 + n]
+            src = sm[(s_rows - k_search + o) * nb :]
             for i in range(n):
-                strip[p, j0 + i] = sm[p * nb + i] if p < n_s else np.nan
+                dst[i] = src[at[i]]
+            for d in range(5):
+                dst = win[d + 1, o, j0 : j0 + n]
+                src = dv[d, o * nb :]
+                for i in range(n):
+                    dst[i] = src[at[i]]
+        for p in range(strip.shape[0]):
+            dst = strip[p, j0 : j0 + n]
+            if p < n_s:
+                src = sm[p * nb : p * nb + n]
+                for i in range(n):
+                    dst[i] = src[i]
+            else:
+                for i in range(n):
+                    dst[i] = np.nan
     return win, strip, strip_top
 
 
 @_jit_inline
-def _smoothed(q, j, strip, strip_top, main_top, main_h, r, scan, colsrc, coltop, ccol, k0):
-    """`_smooth_at`, with its common case (the value held in `strip`) inlined."""
-    p = main_top[j] + q - strip_top[j]
-    if q >= r and q < main_h - r and p >= 0 and p < strip.shape[0]:
-        v = strip[p, j]
-        if not np.isnan(v):
-            return v
-    return _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop, ccol, k0)
+def _in_strip(q, p, main_h, r, n_strip):
+    """Whether the smoothed composite's row `q` is an interior one that `band_window`'s
+    strip holds, at its row `p` (its value there: NaN for rows past the tile's own, read
+    through `_smooth_at` then). (Scalars only: an inlined helper taking the arrays would
+    count references to each of them on every call.)"""
+    return q >= r and q < main_h - r and p >= 0 and p < n_strip
 
 
 @_jit
@@ -565,6 +579,9 @@ def band_lines(
     k_rows, n = rx.shape
     r_k = k0.size // 2
     sampled = np.empty(3)
+    pair = np.empty(2, np.float32)
+    n_strip = strip.shape[0]
+    nan32 = _F32(np.nan)
     inside32 = _F32(inside)
     best = np.empty(n, np.intp)
     found = np.zeros(n, np.bool_)
@@ -616,10 +633,15 @@ def band_lines(
         if q0 < 0 or q1 < 0 or q0 >= main_h or q1 >= main_h:
             return (np.empty(0), np.empty(0), np.empty(0), found, np.empty(0), np.empty(0),
                     np.empty(0), False)  # fmt: skip
-        b0 = _smoothed(q0, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
-                       coltop, ccol, k0)  # fmt: skip
-        b1 = _smoothed(q1, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
-                       coltop, ccol, k0)  # fmt: skip
+        for e in range(2):
+            q = q0 if e == 0 else q1
+            p = main_top[j] + q - strip_top[j]
+            v = strip[p, j] if _in_strip(q, p, main_h, r_k, n_strip) else nan32
+            if np.isnan(v):
+                v = _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc, coltop,
+                               ccol, k0)  # fmt: skip
+            pair[e] = v
+        b0, b1 = pair[0], pair[1]
         bg[j] = half * (b0 + b1)
         grad_y[j] = (b1 - b0) / two_off
     grad_x = np.zeros(n, np.float32)
@@ -684,13 +706,15 @@ def band_lines(
             lo_f = np.floor(pos)
             f = pos - lo_f
             li = np.intp(lo_f)
-            c0 = min(max(li - main_top[j], 0), main_h - 1)
-            c1 = min(max(li + 1 - main_top[j], 0), main_h - 1)
-            v0 = _smoothed(c0, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
-                           coltop, ccol, k0)  # fmt: skip
-            v1 = _smoothed(c1, j, strip, strip_top, main_top, main_h, r_k, scan, colsrc,
-                           coltop, ccol, k0)  # fmt: skip
-            sampled[e] = (1 - f) * v0 + f * v1
+            for s in range(2):
+                q = min(max(li + s - main_top[j], 0), main_h - 1)
+                p = main_top[j] + q - strip_top[j]
+                v = strip[p, j] if _in_strip(q, p, main_h, r_k, n_strip) else nan32
+                if np.isnan(v):
+                    v = _smooth_at(q, j, strip, strip_top, main_top, main_h, scan, colsrc,
+                                   coltop, ccol, k0)  # fmt: skip
+                pair[s] = v
+            sampled[e] = (1 - f) * pair[0] + f * pair[1]
         centre, plus, minus = sampled[0], sampled[1], sampled[2]
         hgt = centre - bg[j]
         if ok and hgt > 0:
