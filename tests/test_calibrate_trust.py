@@ -328,6 +328,12 @@ def test_a_field_radius_that_leaves_too_little_is_refused(scene, tmp_path, capsy
         calibrate(obs, distortion="none", max_radius_px=20.0)
     with pytest.raises(ValueError, match="positive number of pixels"):
         calibrate(obs, distortion="none", max_radius_px=-1.0)
+    # the corners inside, every laser-line pixel in the sensor's corner beyond the radius
+    far_line = [View(v.corners_px, np.array([[1500.0, 1100.0 + k] for k in range(20)]))
+                for v in obs.views]  # fmt: skip
+    with pytest.raises(ValueError, match="leaves no stripe pixel on the boards"):
+        calibrate(dataclasses.replace(obs, views=far_line), distortion="none",
+                  max_radius_px=FIELD_RADIUS_PX)  # fmt: skip
     path = tmp_path / "obs.json"
     write_observations(path, obs)
     code = main(["calibrate", str(path), "--out", str(tmp_path / "c.json"),

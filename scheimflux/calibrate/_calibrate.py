@@ -240,13 +240,13 @@ def _inside_radius(obs: Observations, radius_px) -> tuple[Observations, dict]:
     views = sum(int(v.corner_mask.sum()) >= 6 for v in cut.views)
     if views < 3:
         raise ValueError(
-            f"max_radius_px = {r:g} leaves {views} views with 6 or more corners within "
-            f"{r:g} px of the sensor's centre; calibration needs 3"
+            f"a field radius of {r:g} px (max_radius_px) leaves {views} views with 6 or more "
+            "corners within it of the sensor's centre; calibration needs 3"
         )
     if had_stripes and not _has_board_stripes(cut):
         raise ValueError(
-            f"max_radius_px = {r:g} leaves no stripe pixel on the boards: the laser plane "
-            "would not be calibrated"
+            f"a field radius of {r:g} px (max_radius_px) leaves no stripe pixel on the "
+            "boards: the laser plane would not be calibrated"
         )
     return cut, counts
 
