@@ -140,7 +140,37 @@ def test_stripe_board_motion_bad_input(tmp_path):
     with pytest.raises(ValueError, match="view 1 must be finite"):
         write_scene_images(tmp_path, rig, board, truth,
                            stripe_board_motion=[None, (0.0, float("nan"))])  # fmt: skip
-    with pytest.raises(ValueError, match="needs layout='pair'"):
-        write_scene_images(tmp_path, rig, board, truth, layout="single",
+    with pytest.raises(ValueError, match="of a pair needs stripe_on_board=True"):
+        write_scene_images(tmp_path, rig, board, truth, stripe_on_board=False,
                            stripe_board_motion=(0.001, 0.0))  # fmt: skip
     assert not list(tmp_path.iterdir())
+
+
+def test_single_image_with_a_moved_laser_off_image(cam, tmp_path):
+    """A single image beside its laser-off image: the target is found in the laser-off
+    image and the line read from the laser-on one, so a board that slid between them
+    (here in the laser-off image, 0.3 px) has its stripe refused, named by both files;
+    the unmoved view keeps its line. The measured motion (laser-off to laser-on) is the
+    renderer's, reversed, within `_ERR_PX`."""
+    target = Checkerboard(7, 6, 0.2)
+    rig, truth, _ = _scene(cam, target, rots=(183.0, 178.0))
+    motion = (0.0007, 0.0005, 0.0)
+    images = tmp_path / "images"
+    write_scene_images(images, rig, target, truth, layout="single", seed=2)
+    write_scene_images(tmp_path / "off", rig, target, truth, layout="single", seed=3,
+                       laser_peak=0.0, stripe_board_motion=[motion, None])  # fmt: skip
+    for k in range(2):
+        (tmp_path / "off" / f"view_{k}.png").rename(images / f"view_{k}_off.png")
+    obs, report = detect_captures(images, target)
+    assert report.kept == [0, 1]
+    true = -_true_motion(rig, truth, target, 0, motion)  # laser-off -> laser-on
+    found = obs.views[0].corner_mask
+    assert 0.25 < float(np.linalg.norm(true[found], axis=1).max()) < 0.35
+    m = report.motion[0]
+    assert m.checked, m.why
+    assert np.linalg.norm(m.points_uv[found] - true[found], axis=1).max() < _ERR_PX
+    assert len(obs.views[0].stripe_px) == 0 and found.sum() >= 0.9 * len(target.points_mm)
+    line = [n for n in report.notes if "moved" in n and n.startswith("view 0:")]
+    assert len(line) == 1 and "view_0_off.png to view_0.png" in line[0], report.notes
+    assert report.motion[1].checked and report.motion[1].displacement_px < _ERR_PX
+    assert len(obs.views[1].stripe_px) > 0.65 * np.ptp(truth.stripe_px[1][:, 0])

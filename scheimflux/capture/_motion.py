@@ -156,7 +156,7 @@ def board_motion(
     spread = _AFFINE_SPREAD * noise_s / np.sqrt(max(info, 1e-30))
     if not spread < _PRECISION * MOVED_PX:
         return BoardMotion(False, float("nan"), nan2, gain, float(spread),
-                           f"the stripe image shows the board too faintly (room-light gain "
+                           f"the laser-on image shows the board too faintly (room-light gain "
                            f"{gain:.3f} of the board image's)")  # fmt: skip
     warp = np.eye(2, 3, dtype=np.float32)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-7)

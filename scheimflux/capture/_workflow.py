@@ -7,9 +7,10 @@ A view is dropped, with its reason recorded in the observations' `dropped_views`
 - the target is not found, or fewer than `min_points` of its points are (ChArUco), or
   they lie on one line.
 A kept view whose stripe image is missing or unreadable, or holds no laser line, or
-whose board moved between its pair's two images (`_motion.py`; more than `MOVED_PX`),
-keeps its target points with an empty stripe list (a note says so); a pair whose motion
-cannot be measured is noted as unchecked. A view with an image of
+whose board moved between its pair's two images, or between a single image and its
+laser-off image (`_motion.py`; more than `MOVED_PX`), keeps its target points with an
+empty stripe list (a note says so); a view whose motion cannot be measured is noted as
+unchecked. A view with an image of
 another size than the first one read is dropped too (it cannot come from the same
 sensor), naming the file and both sizes: what the other views gave is kept. The
 per-image logic (target, laser line, points within its reach) is `_image.py`, shared
@@ -43,9 +44,11 @@ class CaptureReport:
     - `notes`: one-line remarks (missing stripe images, ignored files, orientation notes).
     - `ignored`: file names in the folder that are not capture images.
     - `previews`: paths of the preview images written.
-    - `motion`: per pair view number, the board's motion from its board image to its
-      stripe image ([`BoardMotion`][]; `checked` False: it could not be measured, `why`
-      says why). A pair whose board moved more than `MOVED_PX` has its stripe refused.
+    - `motion`: per view number of a pair, or of a single image with a laser-off image,
+      the board's motion from the image its target was found in (board image, laser-off
+      image) to the one its line was read from ([`BoardMotion`][]; `checked` False: it
+      could not be measured, `why` says why). A view whose board moved more than
+      `MOVED_PX` has its stripe refused.
     """
 
     kept: list[int] = dataclasses.field(default_factory=list)
@@ -56,7 +59,7 @@ class CaptureReport:
     motion: dict[int, BoardMotion] = dataclasses.field(default_factory=dict)
 
     def motion_summary(self) -> str:
-        """One line on the pairs' board motion ("" when no pair was checked or not)."""
+        """One line on the views' board motion ("" when none was checked or not)."""
         if not self.motion:
             return ""
         ok = {k: m for k, m in self.motion.items() if m.checked}
@@ -65,14 +68,14 @@ class CaptureReport:
         parts = []
         if ok:
             worst = max(m.displacement_px for m in ok.values())
-            parts.append(f"checked in {len(ok)} pair(s), largest {worst:.3f} px")
+            parts.append(f"checked in {len(ok)} view(s), largest {worst:.3f} px")
         if moved:
             parts.append(f"moved more than {MOVED_PX} px in view(s) {_views(moved)}: "
                          "their stripes refused")  # fmt: skip
         if unchecked:
-            parts.append(f"UNCHECKED in view(s) {_views(unchecked)} (the stripe image shows "
+            parts.append(f"UNCHECKED in view(s) {_views(unchecked)} (the laser-on image shows "
                          "the board too faintly: keep the room light on)")  # fmt: skip
-        return "board motion between board and stripe images: " + "; ".join(parts)
+        return "board motion between a view's laser-off and laser-on images: " + "; ".join(parts)
 
 
 def _views(ks: list[int]) -> str:
@@ -201,12 +204,20 @@ def detect_captures(
                                margin_px=margin_px, min_points=min_points,
                                note=lambda text, cv=cv: note(cv, text))  # fmt: skip
         corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
+        # Did the board move between the exposures whose target points and laser line
+        # are joined? A pair: its board image and stripe image; a single image with a
+        # laser-off image: the target is found in the laser-off one.
+        joined = None
         if not single and simg is not None and simg is not image:
-            # a pair: did the board move between its two exposures?
-            mo = board_motion(image, simg, line.mask, corners, stripe_res,
+            joined = (image, simg, cv.board, cv.stripe)
+        elif single and off is not None and simg is not None:
+            joined = (off, simg, cv.off, cv.board)
+        if joined is not None:
+            ref, lit, ref_path, lit_path = joined
+            mo = board_motion(ref, lit, line.mask, corners, stripe_res,
                               width_px=stripe_width_px)  # fmt: skip
             report.motion[cv.view] = mo
-            b_name, s_name = os.path.basename(cv.board), os.path.basename(cv.stripe)
+            b_name, s_name = os.path.basename(ref_path), os.path.basename(lit_path)
             if not mo.checked:
                 note(cv, f"board motion from {b_name} to {s_name} unchecked: {mo.why}")
             elif mo.displacement_px > MOVED_PX:

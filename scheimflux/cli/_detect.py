@@ -19,10 +19,10 @@ acircles (symmetric / asymmetric circle grids, --board = circles per row x rows,
 A view whose target is not found (or whose image cannot be read, or that has only a
 stripe image) is left out of the observations; it is printed with the reason and listed
 under "dropped_views" in the file. Every view records its source image names. In a pair
-the board's motion between its two images is measured where the stripe image shows the
-board by room light: a board that moved more than 0.1 px has its stripe refused (its
-points kept), and a pair whose stripe image is too dark to tell is reported unchecked
-(keep the room light on for the stripe images). The laser
+(and a single image with its laser-off image) the board's motion between its two images
+is measured where the laser-on image shows the board by room light: a board that moved
+more than 0.1 px has its stripe refused (its points kept), and a view whose laser-on
+image is too dark to tell is reported unchecked (keep the room light on). The laser
 line is extracted only inside the board region (the target's outline, grown by
 --board-margin-px). --preview DIR writes view_<k>_preview.png overlays.
 

@@ -204,12 +204,13 @@ def write_scene_images(
       pair capture); False: on a plain surface (albedo 1), which no real pair shows (its
       board image holds the print, its stripe image none).
     - `stripe_board_motion`: the board slid in its own plane between a pair's two
-      exposures (pair layout, `stripe_on_board`): `(dx_mm, dy_mm[, rot_deg])` for every
-      view, or a sequence of them (None: not moved) per view. The stripe image's print
-      point `xy` lies where the board image's point `R(rot) xy + (dx, dy)` was (rotation
-      about the board's origin); the laser line stays where it was (the board's plane
-      and the laser plane do not move, so neither does their intersection). None
-      (default): the board did not move.
+      exposures (pair layout, `stripe_on_board`: in the stripe image; single layout: in
+      the image, e.g. a laser-off image, `laser_peak=0`, beside an unmoved laser-on
+      one): `(dx_mm, dy_mm[, rot_deg])` for every view, or a sequence of them (None:
+      not moved) per view. The moved image's print point `xy` lies where the unmoved
+      board's point `R(rot) xy + (dx, dy)` was (rotation about the board's origin); the
+      laser line stays where it was (the board's plane and the laser plane do not move,
+      so neither does their intersection). None (default): the board did not move.
     - `overwrite`: replace existing files; otherwise any existing target raises
       `FileExistsError` before anything is written.
 
@@ -230,8 +231,8 @@ def write_scene_images(
     n_views = len(truth.board_poses)
     n_frames = len(truth.scan_px)
     motions = _motions(stripe_board_motion, n_views)
-    if any(m is not None for m in motions) and not (layout == "pair" and stripe_on_board):
-        raise ValueError("stripe_board_motion needs layout='pair' and stripe_on_board=True")
+    if any(m is not None for m in motions) and layout == "pair" and not stripe_on_board:
+        raise ValueError("stripe_board_motion of a pair needs stripe_on_board=True")
     jobs = []
     for k in range(n_views):
         if layout == "single":
@@ -293,6 +294,8 @@ def write_scene_images(
                 if colour:
                     img = np.dstack([img] * 3)
             else:
+                if motions[k] is not None:
+                    f = _moved(f, motions[k])
                 img = on_board(f, k, float(ambient_level), float(laser_peak), s)
         elif kind == "stripe" and stripe_on_board:
             f = _board_to_pixel(rig, truth.board_poses[k])
