@@ -228,6 +228,9 @@ def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     (and becomes valid); a refused fit leaves a refused centre refused and an accepted
     Steger centre as it was.
 
+    `noise`: the noise of the profiles (grey levels), or a function without arguments
+    that returns it (called only where there is a candidate to fit).
+
     **Returns:** `(y, valid, sigma)`: centres, validity and the fitted centres' standard
     errors (inf where not fitted).
     """
@@ -253,6 +256,8 @@ def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     rows = np.clip(rows, 0, shape[0] - 1)
     data = gather(rows, idx[:, None]).astype(np.float64)
     yy = rows.astype(np.float64)
+    if callable(noise):
+        noise = float(noise())
     c, ok, sig, params = fit_step_profiles(data, yy, c0, s_scan, noise)
     ok &= inside
     if np.count_nonzero(ok) >= 5:
