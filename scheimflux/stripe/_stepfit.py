@@ -235,9 +235,11 @@ def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     errors (inf where not fitted).
     """
     none = np.full(lines.y.shape, np.inf)
-    asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
     cand = coarse.support & ~saturated
-    cand &= ~valid | (asym > ASYMMETRY_REFIT if asym is not None else False)
+    if lines.asym is not None:  # (NaN: asymmetric)
+        cand &= ~valid | ~(np.abs(lines.asym) <= ASYMMETRY_REFIT)
+    else:
+        cand &= ~valid
     # only inside the line (between its first and last accepted centre)
     span = np.flatnonzero(valid)
     if span.size < 2:
