@@ -954,11 +954,13 @@ def _extract_track(
     # centres of the step fit: at most 0.5 (a model fit, not a symmetric ridge), lower
     # as the centre's standard error approaches the accepted limit
     refit = np.isfinite(refit_sigma)
-    confidence = np.where(
-        refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
-    )
+    if refit.any():
+        confidence = np.where(
+            refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
+        )
     # centres read from the plateau's flanks (step 4b): 0.5, a model reading too
-    confidence = np.where(rim, 0.5, confidence)
+    if rim.any():
+        confidence = np.where(rim, 0.5, confidence)
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),

@@ -1231,10 +1231,19 @@ def band_layout(centre, tile, half, r, k_search):
 def coarse_scan(small, d):
     """`_coarse.coarse_track`'s first steps on a float32 `small` (no mask) in one pass:
     the ridge response (`ridge_rows`), the first maximum per scan line (`idx`), its
-    response and the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
-    it)."""
+    response, the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
+    it) and the smallest and largest value of `small` (no NaN)."""
     ridge = ridge_rows(small, d)
     hs, ws = small.shape
+    col_lo, col_hi = small[0].copy(), small[0].copy()  # (per column: vectorised)
+    for i in range(1, hs):
+        for j in range(ws):
+            col_lo[j] = min(col_lo[j], small[i, j])
+            col_hi[j] = max(col_hi[j], small[i, j])
+    lo, hi = col_lo[0], col_hi[0]
+    for j in range(1, ws):
+        lo = min(lo, col_lo[j])
+        hi = max(hi, col_hi[j])
     idx = column_argmax(ridge)
     resp = np.empty(ws, np.float32)
     pos = np.empty(ws)
@@ -1249,7 +1258,7 @@ def coarse_scan(small, d):
         frac = min(max(frac, _F32(-0.5)), _F32(0.5))
         resp[j] = c
         pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
-    return ridge, idx, resp, pos
+    return ridge, idx, resp, pos, lo, hi
 
 
 @_jit
