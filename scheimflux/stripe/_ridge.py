@@ -108,7 +108,7 @@ def scan_direction(
         # the positive responses below from one compiled call (the same float32 values
         # in the same order: the same sums)
         pos, count = _fast.ridge_positive(np.ascontiguousarray(small), d, dd, floor)
-        energies = [np.sum(pos[k, : count[k]]) for k in range(4)]
+        energies = [pos[k, : count[k]].sum() for k in range(4)]
     else:
         energies = []
         for resp, where in interior():
