@@ -124,8 +124,7 @@ def coarse_track(
     fast = _fast.enabled and small.dtype == np.float32 and hs > 2 * d
     if fast and mask_small is None and FACTOR == 4:
         # the steps below to the peak position in one compiled pass (same values)
-        ridge, idx, resp, pos = _fast.coarse_scan(small, d)
-        lo_, hi_, _, _ = cv2.minMaxLoc(small)
+        ridge, idx, resp, pos, lo_, hi_ = _fast.coarse_scan(small, d)
         return _track(ridge, idx, resp, pos, lo_, hi_, n_rows, n_cols, width_px, integer_input,
                       pixel_noise)  # fmt: skip
     ridge = _fast.ridge_rows(small, d) if fast else ridge_response(small, d, 0)

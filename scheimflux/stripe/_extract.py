@@ -785,8 +785,12 @@ def _extract_track(
         # keeps it at block scale (`block_noise`), where it reads well above the pixel
         # estimate (2-3x at quality 95-85; 1.1-1.2x without compression, where the
         # pixel estimate stays)
-        block = _block_noise(img)
-        fit_noise = block if block > 1.5 * noise else noise
+        # (a callable: read only where there is a profile to fit, which a plain frame
+        # seldom has; the block pass costs a full-frame read)
+        def fit_noise() -> float:
+            block = _block_noise(img)
+            return block if block > 1.5 * noise else noise
+
         y_fit, valid, refit_sigma = refit_steps(
             gather, shape, lines, valid, saturated, coarse, med, fit_noise
         )
@@ -930,7 +934,8 @@ def _extract_track(
         segment, linked = linked_segments(valid)
         rim &= linked
     # a centre read from one flank (step 4b) only between others of its linked segment
-    linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
+    if rim_one.any():
+        linked &= ~rim_one | bracketed(rim_one & linked, linked & ~rim_one)
     # the centres the albedo test refused (colour, no laser-off image) are part of the
     # line while it is linked (a line along a column of checker edges is refused over
     # long stretches, and its pieces alone would be too short to count as a line)
@@ -949,11 +954,13 @@ def _extract_track(
     # centres of the step fit: at most 0.5 (a model fit, not a symmetric ridge), lower
     # as the centre's standard error approaches the accepted limit
     refit = np.isfinite(refit_sigma)
-    confidence = np.where(
-        refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
-    )
+    if refit.any():
+        confidence = np.where(
+            refit, 0.5 * np.clip(1.0 - refit_sigma / MAX_SIGMA_C, 0.05, 1.0), confidence
+        )
     # centres read from the plateau's flanks (step 4b): 0.5, a model reading too
-    confidence = np.where(rim, 0.5, confidence)
+    if rim.any():
+        confidence = np.where(rim, 0.5, confidence)
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),

@@ -988,25 +988,43 @@ def consistent_passes(yv, valid, keep, off_curve, half, floor_px):
     for i in range(n):
         any_off = any_off or off_curve[i]
     keep = keep.copy()
+    w = np.empty((2 if any_off else 1, n))
+    for i in range(n):
+        w[0, i] = 1.0 if keep[i] else 0.0
+        if any_off:
+            w[1, i] = 1.0 if valid[i] else 0.0
+    p, c = local_fit(yv, w, half)  # the first pass's fits, kept for the second
     for step in range(2):
         factor, floor = (3.0, 1.0) if step == 0 else (5.0, floor_px)
         if step == 0 and any_off:
-            w = np.empty((2, n))
-            for i in range(n):
-                w[0, i] = 1.0 if keep[i] else 0.0
-                w[1, i] = 1.0 if valid[i] else 0.0
-            p, c = local_fit(yv, w, half)
             pred, count = p[0].copy(), c[0].copy()
             for i in range(n):
                 # a piece of line the global cubic does not follow, judged by its own
                 if count[i] < 6 and c[1, i] >= 30:
                     pred[i], count[i] = p[1, i], c[1, i]
-        else:
-            w = np.empty((1, n))
-            for i in range(n):
-                w[0, i] = 1.0 if keep[i] else 0.0
-            p, c = local_fit(yv, w, half)
+        elif step == 0:
             pred, count = p[0], c[0]
+        else:
+            # a fit already made with the same weights is reused (as the reference's
+            # `fit` does): the first pass often keeps every valid centre
+            same = -1
+            for m in range(w.shape[0]):
+                equal = True
+                for i in range(n):
+                    if (w[m, i] > 0) != keep[i]:
+                        equal = False
+                        break
+                if equal:
+                    same = m
+                    break
+            if same >= 0:
+                pred, count = p[same], c[same]
+            else:
+                w1 = np.empty((1, n))
+                for i in range(n):
+                    w1[0, i] = 1.0 if keep[i] else 0.0
+                p1, c1 = local_fit(yv, w1, half)
+                pred, count = p1[0], c1[0]
         r = np.empty(n)  # np.abs(yv - pred), as a loop (an array expression compiles slowly)
         for i in range(n):
             r[i] = abs(yv[i] - pred[i])
@@ -1213,10 +1231,19 @@ def band_layout(centre, tile, half, r, k_search):
 def coarse_scan(small, d):
     """`_coarse.coarse_track`'s first steps on a float32 `small` (no mask) in one pass:
     the ridge response (`ridge_rows`), the first maximum per scan line (`idx`), its
-    response and the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
-    it)."""
+    response, the sub-coarse-pixel peak `pos` (parabola, float64 as NumPy promotes
+    it) and the smallest and largest value of `small` (no NaN)."""
     ridge = ridge_rows(small, d)
     hs, ws = small.shape
+    col_lo, col_hi = small[0].copy(), small[0].copy()  # (per column: vectorised)
+    for i in range(1, hs):
+        for j in range(ws):
+            col_lo[j] = min(col_lo[j], small[i, j])
+            col_hi[j] = max(col_hi[j], small[i, j])
+    lo, hi = col_lo[0], col_hi[0]
+    for j in range(1, ws):
+        lo = min(lo, col_lo[j])
+        hi = max(hi, col_hi[j])
     idx = column_argmax(ridge)
     resp = np.empty(ws, np.float32)
     pos = np.empty(ws)
@@ -1231,7 +1258,7 @@ def coarse_scan(small, d):
         frac = min(max(frac, _F32(-0.5)), _F32(0.5))
         resp[j] = c
         pos[j] = 4 * (np.float64(k) + np.float64(frac)) + 1.5
-    return ridge, idx, resp, pos
+    return ridge, idx, resp, pos, lo, hi
 
 
 @_jit

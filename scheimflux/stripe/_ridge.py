@@ -108,7 +108,7 @@ def scan_direction(
         # the positive responses below from one compiled call (the same float32 values
         # in the same order: the same sums)
         pos, count = _fast.ridge_positive(np.ascontiguousarray(small), d, dd, floor)
-        energies = [np.sum(pos[k, : count[k]]) for k in range(4)]
+        energies = [pos[k, : count[k]].sum() for k in range(4)]
     else:
         energies = []
         for resp, where in interior():
@@ -116,10 +116,13 @@ def scan_direction(
             if weight is not None:
                 r = r * weight[where]
             energies.append(np.sum(r[r > 0]))
-    T = np.zeros((2, 2))
+    # the tensor T = [[a, b], [b, c]], summed in float64 in the order of the directions
+    a = b = c = 0.0
     for e, (eu, ev) in zip(energies, _DIRECTIONS):
-        T += float(e) * np.array([[eu * eu, eu * ev], [eu * ev, ev * ev]])
-    a, b, c = float(T[0, 0]), float(T[0, 1]), float(T[1, 1])
+        e = float(e)
+        a += e * (eu * eu)
+        b += e * (eu * ev)
+        c += e * (ev * ev)
     if not a + c > 0:
         return "vertical-scan", 90.0, 0.0
     # eigen-decomposition of the symmetric 2 x 2 tensor in closed form: eigenvalues

@@ -228,13 +228,18 @@ def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     (and becomes valid); a refused fit leaves a refused centre refused and an accepted
     Steger centre as it was.
 
+    `noise`: the noise of the profiles (grey levels), or a function without arguments
+    that returns it (called only where there is a candidate to fit).
+
     **Returns:** `(y, valid, sigma)`: centres, validity and the fitted centres' standard
     errors (inf where not fitted).
     """
     none = np.full(lines.y.shape, np.inf)
-    asym = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) if lines.asym is not None else None
     cand = coarse.support & ~saturated
-    cand &= ~valid | (asym > ASYMMETRY_REFIT if asym is not None else False)
+    if lines.asym is not None:  # (NaN: asymmetric)
+        cand &= ~valid | ~(np.abs(lines.asym) <= ASYMMETRY_REFIT)
+    else:
+        cand &= ~valid
     # only inside the line (between its first and last accepted centre)
     span = np.flatnonzero(valid)
     if span.size < 2:
@@ -253,6 +258,8 @@ def refit_steps(gather, shape, lines, valid, saturated, coarse, width, noise):
     rows = np.clip(rows, 0, shape[0] - 1)
     data = gather(rows, idx[:, None]).astype(np.float64)
     yy = rows.astype(np.float64)
+    if callable(noise):
+        noise = float(noise())
     c, ok, sig, params = fit_step_profiles(data, yy, c0, s_scan, noise)
     ok &= inside
     if np.count_nonzero(ok) >= 5:
