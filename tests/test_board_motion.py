@@ -174,3 +174,57 @@ def test_single_image_with_a_moved_laser_off_image(cam, tmp_path):
     assert len(line) == 1 and "view_0_off.png to view_0.png" in line[0], report.notes
     assert report.motion[1].checked and report.motion[1].displacement_px < _ERR_PX
     assert len(obs.views[1].stripe_px) > 0.65 * np.ptp(truth.stripe_px[1][:, 0])
+
+
+def test_line_band_covers_the_line_past_its_kept_centres():
+    """The registration's mask of the line reaches the image's edges along the line, not
+    only the span of the centres the extractor kept (there the laser still lights the
+    board): an oblique line with centres kept on rows 400-700 only of a 1000-row image."""
+    from scheimflux.capture._motion import _line_band
+
+    v = np.arange(0.0, 1000.0)
+    u = 300.0 + 0.2 * v  # the lit line, every row
+    keep = (v >= 400) & (v <= 700)
+    stripe = types.SimpleNamespace(uv=np.stack([u, v], 1), valid=keep,
+                                   width=np.full(len(v), 6.0), orientation="horizontal-scan")
+    band = _line_band((1000, 800), stripe, None)
+    rows = np.arange(1000)
+    cols = np.rint(u).astype(int)
+    assert band[rows, cols].all()  # the whole line, both ends included
+    # and not the rest of the image: 1.5 FWHM + 3 px (12 px) either side, a little more
+    assert not band[rows, np.clip(cols + 16, 0, 799)].any()
+    assert not band[rows, np.clip(cols - 16, 0, 799)].any()
+
+
+@pytest.mark.slow
+def test_unmoved_full_view_whose_line_runs_past_its_centres(tmp_path):
+    """An unmoved single image with a clipped line and its laser-off image, a full-sensor
+    view of the end-to-end scenes (paper rig, seed 5, view 2): the extractor keeps no
+    centre over the upper third of the line on the board, but the laser lights it; the
+    registration must mask the whole line (extended to the image's edges), not only its
+    kept centres. Unmasked, that part of the line made the unmoved board measure
+    0.112 px and its stripe was refused; masked, within `_ERR_PX`."""
+    from test_capture import CLIPPED
+
+    from scheimflux.simulate import paper_rig, simulate_observations
+
+    target = Checkerboard(11, 8, 0.3)
+    rig = paper_rig(refine=False)
+    _, full = simulate_observations(rig, target, n_views=15, stage_scan=False, seed=5)
+    truth = types.SimpleNamespace(board_poses=[full.board_poses[2]],
+                                  stripe_px=[full.stripe_px[2]], scan_px=[])  # fmt: skip
+    images = tmp_path / "images"
+    write_scene_images(images, rig, target, truth, layout="single", seed=5,
+                       laser_peak=CLIPPED)  # fmt: skip
+    write_scene_images(tmp_path / "off", rig, target, truth, layout="single", seed=6,
+                       laser_peak=0.0)  # fmt: skip
+    (tmp_path / "off" / "view_0.png").rename(images / "view_0_off.png")
+    obs, report = detect_captures(images, target)
+    m = report.motion[0]
+    assert m.checked and m.displacement_px < _ERR_PX, (m.displacement_px, m.why)
+    uv = obs.views[0].stripe_px
+    assert len(uv) > 300
+    # the kept centres stop well short of the line's end on the board (what the test is
+    # about): the lit line reaches the board's far edge, >100 px beyond them
+    along = np.ptp(np.asarray(full.stripe_px[2])[:, 1])
+    assert np.ptp(uv[:, 1]) < along - 100
