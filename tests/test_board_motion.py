@@ -4,6 +4,7 @@ stripe_board_motion=)`, the board slid in its own plane), a board moved beyond
 `MOVED_PX` has its stripe refused with its points kept, an unmoved pair keeps its
 centres unchanged, and a stripe image without room light is reported unchecked."""
 
+import json
 import types
 
 import numpy as np
@@ -16,6 +17,7 @@ from scheimflux.capture._folder import read_image
 from scheimflux.capture._image import find_target, line_and_points
 from scheimflux.capture._motion import MOVED_PX
 from scheimflux.cli._main import main
+from scheimflux.io import read_observations
 from scheimflux.simulate._images import _board_to_pixel, _moved, write_scene_images
 from scheimflux.targets import CharucoBoard, Checkerboard, CircleGrid
 
@@ -93,6 +95,7 @@ def test_unmoved_pair_keeps_its_centres(cam, tmp_path):
     obs, report = detect_captures(tmp_path, target)
     m = report.motion[0]
     assert m.checked and m.displacement_px < _ERR_PX, (m.displacement_px, m.why)
+    assert obs.views[0].board_motion_px == m.displacement_px  # kept in the observations
     assert not any("moved" in n or "unchecked" in n for n in report.notes), report.notes
     board = read_image(str(tmp_path / "view_0_board.png"))
     stripe = read_image(str(tmp_path / "view_0_stripe.png"))
@@ -127,6 +130,9 @@ def test_dark_stripe_image_is_unchecked(cam, tmp_path, capsys):
     assert not m.checked and not np.isfinite(m.displacement_px)
     assert m.gain < 0.01  # the fitted room light: none
     assert len(obs.views[0].stripe_px) > 300  # kept: nothing says it moved
+    # the observations file keeps it: null (not measurable), read back as NaN
+    assert json.loads(out.read_text())["views"][0]["board_motion_px"] is None
+    assert np.isnan(read_observations(out).views[0].board_motion_px)
 
 
 def test_stripe_board_motion_bad_input(tmp_path):

@@ -341,3 +341,18 @@ def test_a_field_radius_that_leaves_too_little_is_refused(scene, tmp_path, capsy
     err = capsys.readouterr().err
     assert code == 1 and "--max-radius-px must be positive" in err
     assert not (tmp_path / "c.json").exists()
+
+
+def test_a_line_whose_board_motion_was_not_measured_is_named(scene, clean):
+    # `detect` could not tell whether view 1's board moved between its laser-off and
+    # laser-on images (NaN): the calibration uses its line and says so
+    obs = scene[0]
+    views = [dataclasses.replace(v, source=(f"view_{i}_board.png", f"view_{i}_stripe.png"),
+                                 board_motion_px=float("nan") if i == 1 else 0.01)
+             for i, v in enumerate(obs.views)]  # fmt: skip
+    cal = calibrate(dataclasses.replace(obs, views=views), distortion="none")
+    said = [w for w in cal.quality.warnings if "could not be measured" in w]
+    assert len(said) == 1 and "view(s) 1 (view_1_stripe.png)" in said[0], cal.quality.warnings
+    assert said[0] in cal.quality.summary()
+    # without a recorded motion nothing is said
+    assert not any("could not be measured" in w for w in clean.quality.warnings)

@@ -96,3 +96,25 @@ def test_within_radius_drops_what_lies_beyond_it():
     np.testing.assert_array_equal(cut.views[0].corners_px[2:], obs.views[0].corners_px[2:])
     np.testing.assert_array_equal(cut.views[0].stripe_px, [[800.0, 600.0]])
     assert cut.width == obs.width and cut.board_points_mm is obs.board_points_mm
+
+
+def test_board_motion_round_trip_and_validation(tmp_path):
+    # measured (px), not measurable (NaN <-> null) and not applicable (None <-> absent)
+    obs = _obs()
+    v = obs.views[0]
+    obs.views[:] = [View(v.corners_px, v.stripe_px, ("a.png",), m)
+                    for m in (0.012, float("nan"), None)]  # fmt: skip
+    path = tmp_path / "obs.json"
+    write_observations(path, obs)
+    doc = json.loads(path.read_text())
+    assert doc["views"][0]["board_motion_px"] == 0.012
+    assert doc["views"][1]["board_motion_px"] is None
+    assert "board_motion_px" not in doc["views"][2]
+    back = read_observations(path)
+    assert back.views[0].board_motion_px == 0.012
+    assert np.isnan(back.views[1].board_motion_px) and back.views[2].board_motion_px is None
+    for bad in (-0.1, "0.1", True):
+        doc["views"][0]["board_motion_px"] = bad
+        path.write_text(json.dumps(doc))
+        with pytest.raises(ValueError, match=r"views\[0\].board_motion_px must be a number"):
+            read_observations(path)

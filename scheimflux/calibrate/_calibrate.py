@@ -5,6 +5,7 @@ paper (§2.4) and jointly as one parameter pytree: the orchestration of the step
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import jax.numpy as jnp
@@ -147,7 +148,7 @@ def calibrate(
         gauge=gauge,
     )
     hold = cam_cal.hold
-    notes = cam_cal.notes + profile_notes(cam_cal.axis_profile)
+    notes = cam_cal.notes + profile_notes(cam_cal.axis_profile) + _unchecked_motion(obs)
     if camera_only:
         cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust)
         rejected = {"threshold_sigma": reject}
@@ -230,6 +231,25 @@ def calibrate(
         axis_profile=cam_cal.axis_profile,
     )
     return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes)
+
+
+def _unchecked_motion(obs: Observations) -> tuple[str, ...]:
+    """A warning naming the views whose laser line is used although `detect` could not
+    measure whether the board moved between their laser-off and laser-on images."""
+    views = [
+        (i, v)
+        for i, v in enumerate(obs.views)
+        if v.board_motion_px is not None and math.isnan(v.board_motion_px) and len(v.stripe_px)
+    ]
+    if not views:
+        return ()
+    names = ", ".join(f"{i} ({v.source[-1]})" if v.source else str(i) for i, v in views[:5])
+    more = f" and {len(views) - 5} more" if len(views) > 5 else ""
+    return (
+        f"the board's motion between the laser-off and laser-on images of view(s) "
+        f"{names}{more} could not be measured (the laser-on image shows the board too "
+        "faintly): their laser lines are used as if the board had not moved",
+    )
 
 
 def _inside_radius(obs: Observations, radius_px) -> tuple[Observations, dict]:

@@ -20,6 +20,7 @@ with the steps of a target on the rotary table (`_stage_target.py`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Callable, Sequence
 
@@ -207,7 +208,7 @@ def detect_captures(
         # Did the board move between the exposures whose target points and laser line
         # are joined? A pair: its board image and stripe image; a single image with a
         # laser-off image: the target is found in the laser-off one.
-        joined = None
+        joined, motion_px = None, None
         if not single and simg is not None and simg is not image:
             joined = (image, simg, cv.board, cv.stripe)
         elif single and off is not None and simg is not None:
@@ -217,6 +218,12 @@ def detect_captures(
             mo = board_motion(ref, lit, line.mask, corners, stripe_res,
                               width_px=stripe_width_px)  # fmt: skip
             report.motion[cv.view] = mo
+            # kept in the observations (NaN: not measurable; an unmatched print, whose
+            # stripe is refused below, records nothing)
+            if not mo.checked:
+                motion_px = math.nan
+            elif np.isfinite(mo.displacement_px):
+                motion_px = float(mo.displacement_px)
             b_name, s_name = os.path.basename(ref_path), os.path.basename(lit_path)
             if not mo.checked:
                 note(cv, f"board motion from {b_name} to {s_name} unchecked: {mo.why}")
@@ -237,7 +244,7 @@ def detect_captures(
                 _preview(preview_dir, cv, simg if simg is not None else image, corners,
                          line.hull, stripe_res, line.mask, "")
             )  # fmt: skip
-        views.append(View(corners, stripe_uv, cv.names))
+        views.append(View(corners, stripe_uv, cv.names, motion_px))
         report.kept.append(cv.view)
 
     if not views:

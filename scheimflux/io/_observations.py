@@ -6,7 +6,8 @@
  "nominal": {"focal_length_mm": 97, "magnification": 1.5, "tilt_deg": [0, 13]},  # optional
  "board_points_mm": [[x, y, z], ...],
  "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...],
-            "source": ["view_0_board.png", "view_0_stripe.png"]}, ...],     # source optional
+            "source": ["view_0_board.png", "view_0_stripe.png"],              # optional
+            "board_motion_px": 0.012}, ...],                                   # optional
  "dropped_views": [{"view": 3, "images": ["view_3.jpg"],                           # optional
                     "reason": "no 11x8 checkerboard found ..."}, ...],
  "stage": {"delta_omega_deg": 10, "gauge_radius_mm": 17.5,                        # optional
@@ -24,7 +25,10 @@
 given to `detect`; the thick-lens model needs it). `source` names the image files a view
 was measured in; `dropped_views` lists the captures left out (target not found, image
 unreadable, ...) with the capture's view number, its image names and the reason.
-`stage_target` holds a target fixed to the rotary table, imaged at table steps
+`board_motion_px` is the board's motion measured between a view's laser-off image (a
+pair's board image, or `view_<k>_off`) and its laser-on image (px; null: it could not be
+measured, the laser-on image showing the board too faintly; absent: no laser-off image,
+or not measured). `stage_target` holds a target fixed to the rotary table, imaged at table steps
 `table_step` (angle `table_step · delta_omega_deg`; steps strictly increasing, a step
 whose image showed no target is listed in its `dropped_views` and keeps its number); its
 `board_points_mm` may be another target than the calibration boards'. Files without
@@ -52,7 +56,7 @@ TOP_KEYS = (
 )  # fmt: skip
 SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
 NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
-VIEW_KEYS = ("corners_px", "stripe_px", "source")
+VIEW_KEYS = ("corners_px", "stripe_px", "source", "board_motion_px")
 DROPPED_KEYS = ("view", "images", "reason")
 STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
 STAGE_TARGET_KEYS = ("delta_omega_deg", "board_points_mm", "views", "dropped_views")
@@ -76,6 +80,9 @@ class View:
     corners_px: np.ndarray  # (M, 2) float64
     stripe_px: np.ndarray  # (K, 2) float64
     source: tuple[str, ...] = ()  # image file names the view was measured in
+    # the board's motion between the view's laser-off and laser-on images (px); NaN: it
+    # could not be measured; None: no laser-off image (or not measured)
+    board_motion_px: float | None = None
 
     @property
     def corner_mask(self) -> np.ndarray:
@@ -267,7 +274,8 @@ def parse_observations(doc) -> Observations:
                 f"{len(board)} (use null for corners that were not detected)"
             )
         stripe = _points(vd.get("stripe_px", []), f"views[{i}].stripe_px", 2)
-        views.append(View(corners, stripe, _names(vd.get("source", []), f"views[{i}].source")))
+        names = _names(vd.get("source", []), f"views[{i}].source")
+        views.append(View(corners, stripe, names, _motion(vd, f"views[{i}]")))
 
     dropped = []
     dropped_doc = doc.get("dropped_views", [])
@@ -376,6 +384,20 @@ def _parse_stage_target(sd) -> StageTargetViews:
     )  # fmt: skip
 
 
+def _motion(vd: dict, where: str) -> float | None:
+    """A view's `board_motion_px`: a number >= 0, null (not measurable: NaN) or absent."""
+    if "board_motion_px" not in vd:
+        return None
+    m = vd["board_motion_px"]
+    if m is None:
+        return math.nan
+    if isinstance(m, bool) or not isinstance(m, (int, float)) or not 0 <= m < math.inf:
+        raise ObservationsError(
+            f"{where}.board_motion_px must be a number of pixels >= 0 or null, got {m!r}"
+        )
+    return float(m)
+
+
 def _names(value, where: str) -> tuple[str, ...]:
     if not isinstance(value, list) or not all(isinstance(n, str) for n in value):
         raise ObservationsError(f"{where} must be a list of file names")
@@ -422,6 +444,15 @@ def observations_to_dict(obs: Observations) -> dict:
             "corners_px": _rows(np.asarray(v.corners_px)),
             "stripe_px": [r for r in _rows(np.asarray(v.stripe_px)) if r is not None],
             **({"source": list(v.source)} if v.source else {}),
+            **(
+                {}
+                if v.board_motion_px is None
+                else {
+                    "board_motion_px": None
+                    if math.isnan(v.board_motion_px)
+                    else float(v.board_motion_px)
+                }
+            ),
         }
         for v in obs.views
     ]
