@@ -226,9 +226,7 @@ def coverage_of(
     if margin_px is None:
         margin_px = _corner_spacing_px(corners)
     rows, cols = -(-h // cell_px), -(-w // cell_px)
-    # cell centres, the last (partial) cell's clipped to the sensor's last pixel
-    cu = np.minimum((np.arange(cols) + 0.5) * cell_px - 0.5, w - 1)
-    cv = np.minimum((np.arange(rows) + 0.5) * cell_px - 0.5, h - 1)
+    cu, cv = _cell_centres((w, h), (rows, cols), cell_px)
     centres = np.stack(np.meshgrid(cu, cv), axis=-1).reshape(-1, 2)
     grid = np.zeros(rows * cols, bool)
     for k in range(max(len(corners), len(stripes))):
@@ -240,14 +238,21 @@ def coverage_of(
     return Coverage(grid.reshape(rows, cols), int(cell_px), float(margin_px), (w, h))
 
 
+def _cell_centres(sensor_size, shape, cell_px) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's cell centres along u and v (px), the last (partial) cell's clipped to
+    the sensor's last pixel."""
+    (w, h), (rows, cols) = sensor_size, shape
+    cu = np.minimum((np.arange(cols) + 0.5) * cell_px - 0.5, w - 1)
+    cv = np.minimum((np.arange(rows) + 0.5) * cell_px - 0.5, h - 1)
+    return cu, cv
+
+
 def clip_to_radius(cov: Coverage, radius_px: float) -> Coverage:
     """`cov` without the cells whose centre lies farther than `radius_px` from the
     sensor's centre: a calibration made inside that radius (`calibrate(max_radius_px=)`)
     does not cover what the dilation of its hulls reaches beyond it."""
     w, h = cov.sensor_size
-    rows, cols = cov.grid.shape
-    cu = np.minimum((np.arange(cols) + 0.5) * cov.cell_px - 0.5, w - 1)
-    cv = np.minimum((np.arange(rows) + 0.5) * cov.cell_px - 0.5, h - 1)
+    cu, cv = _cell_centres(cov.sensor_size, cov.grid.shape, cov.cell_px)
     du, dv = np.meshgrid(cu - (w - 1) / 2.0, cv - (h - 1) / 2.0)
     return dataclasses.replace(cov, grid=cov.grid & (np.hypot(du, dv) <= radius_px))
 

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from ..io._observations import Observations, StageScan, within_radius
+from ..io._observations import Observations, StageScan, near_centre, within_radius
 
 # Reprojection / stripe / gauge RMS above this many stated σ fail the gate.
 RMS_FACTOR = 3.0
@@ -239,12 +239,8 @@ def screen_field(obs: Observations, radius_px: float) -> tuple[Observations, dic
         ) from None
     if not (math.isfinite(radius) and radius > 0):
         raise ValueError(f"the field radius must be a positive number of pixels, got {radius_px!r}")
-    centre = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
-
     def near(px):
-        px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-        with np.errstate(invalid="ignore"):
-            return np.linalg.norm(px - centre, axis=1) <= radius
+        return near_centre(obs, np.asarray(px, dtype=np.float64).reshape(-1, 2), radius)
 
     def n_corners(views_px):
         return sum(int(np.all(np.isfinite(c), axis=-1).sum()) for c in views_px)

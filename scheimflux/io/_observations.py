@@ -152,17 +152,23 @@ class Observations:
         return uv, np.all(np.isfinite(uv), axis=-1)
 
 
+def near_centre(obs: Observations, px, radius_px: float) -> np.ndarray:
+    """Which rows of the pixels `px` `(..., 2)` lie within `radius_px` of the sensor's
+    centre `((width - 1) / 2, (height - 1) / 2)` (False for NaN rows)."""
+    c = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
+    with np.errstate(invalid="ignore"):
+        return np.linalg.norm(np.asarray(px, dtype=np.float64) - c, axis=-1) <= radius_px
+
+
 def within_radius(obs: Observations, radius_px: float) -> Observations:
     """`obs` without the corners (NaN) and stripe pixels farther than `radius_px` from the
     sensor's centre (e.g. to calibrate inside a lens's unvignetted field)."""
-    c = np.array([(obs.width - 1) / 2.0, (obs.height - 1) / 2.0])
     views = []
     for v in obs.views:
         cp = np.array(v.corners_px, dtype=float)
-        with np.errstate(invalid="ignore"):
-            cp[np.linalg.norm(cp - c, axis=1) > radius_px] = np.nan
+        cp[~near_centre(obs, cp, radius_px) & np.all(np.isfinite(cp), axis=1)] = np.nan
         sp = np.array(v.stripe_px, dtype=float).reshape(-1, 2)
-        sp = sp[np.linalg.norm(sp - c, axis=1) <= radius_px]
+        sp = sp[near_centre(obs, sp, radius_px)]
         views.append(dataclasses.replace(v, corners_px=cp, stripe_px=sp))
     return dataclasses.replace(obs, views=views)
 
