@@ -197,7 +197,8 @@ def run_demo(
     )
     print(
         f"    gauge radius: {radius:.5f} mm vs {GAUGE_RADIUS_MM:.3f} mm "
-        f"(error {summary['gauge_radius_error_um']:+.3f} um; the paper: 1.2 um)"
+        f"(error {summary['gauge_radius_error_um']:+.3f} um; the paper: 1.2 um; the "
+        "calibration was given this radius, so this is repeatability, not accuracy)"
     )
     print(f"  total time {total:.1f} s")
     print(f"  wrote {obs_path}, truth.json, calibration.json, points.ply and summary.json in {out}")

@@ -196,6 +196,69 @@ def test_artefact_scenes_measured_with_the_model_camera(rig, model):
     np.testing.assert_allclose(h, [1.0, 1.5, 2.0], atol=1e-3)
 
 
+# ----------------------------------------------------------------------------- own gauge
+
+
+def _gauge_cal(frames, radius=17.5):
+    """A stand-in calibration holding `frames` as its gauge scan, padded as
+    `calibrate._model.make_data` pads them (weight 0 on the padding)."""
+    import types
+
+    n = max(len(f) for f in frames) + 5
+    gauge = np.full((len(frames) + 2, n, 2), 800.0)
+    w = np.zeros(gauge.shape[:2])
+    for i, f in enumerate(frames):
+        gauge[i, : len(f)], w[i, : len(f)] = f, 1.0
+    data = types.SimpleNamespace(gauge=gauge, gauge_w=w, gauge_radius=np.float64(radius))
+    return types.SimpleNamespace(data=data)
+
+
+def test_own_gauge_scan_found_and_other_artefacts_not(rig):
+    """The calibration's ring gauge where it stood (its own scan, a fresh scan with new
+    noise, the same scan from another start angle) is recognised frame by frame; the gauge
+    moved by 10 µm on the table, a ring of another radius and a line crossing the gauge's
+    stripes are not. All pixels ray-traced."""
+    from scheimflux.calibrate._loaded import MissingObservations
+    from scheimflux.calibrate._own_gauge import frames_on_calibration_gauge
+    from scheimflux.simulate import gauge_scan
+
+    stage = default_stage(rig, 17.5, math.radians(30.0))
+    ecc = (0.4, -0.3)
+
+    def scan(**kw):
+        kw = {"eccentricity_mm": ecc, "noise_px": 0.05, "seed": 1} | kw
+        s = gauge_scan(rig, stage, 17.5, 12, points_per_frame=120, **kw)
+        return [np.asarray(f.px, np.float64).reshape(-1, 2) for f in s.frames]
+
+    def check(frames):
+        uv = np.concatenate(frames)
+        fi = np.concatenate([np.full(len(f), i) for i, f in enumerate(frames)])
+        return frames_on_calibration_gauge(cal, uv, fi)
+
+    own = scan()
+    cal = _gauge_cal(own)
+    everything = list(range(12))
+    assert check(own) == everything
+    assert check(scan(seed=2)) == everything  # a fresh scan: new 0.05 px noise
+    assert check(own[5:] + own[:5]) == everything  # started 5 steps later
+    # moved 10 µm on the table: its stripe moves ~3-4 px at x1.5 and 4.4 µm pixels
+    assert check(scan(eccentricity_mm=(0.41, -0.3))) == []
+    ring = ring_artefact(rig, stage, 17.2, n_frames=12, noise_px=0.05, seed=3)
+    assert check([np.asarray(p, np.float64) for p in ring.px]) == []
+    # a straight line through one of the gauge's stripes: a few pixels on it, not 80 %
+    a, b = own[3][0], own[3][-1]
+    t = np.linspace(-0.5, 1.5, 400)[:, None]
+    crossing = a + t * (b - a) + np.array([0.0, 40.0]) * (t - 0.5)
+    assert check([crossing]) == []
+    # no gauge scan to compare with
+    empty = _gauge_cal([np.zeros((0, 2))])
+    assert frames_on_calibration_gauge(empty, own[0]) is None
+    import types
+
+    blind = types.SimpleNamespace(data=MissingObservations("cal.json"))
+    assert frames_on_calibration_gauge(blind, own[0]) is None
+
+
 # ----------------------------------------------------------------------------- end to end
 
 
@@ -253,6 +316,16 @@ def test_verify_end_to_end_ring_and_sphere_pair(rig, calibrated, capsys):
             assert abs(v["error"]) <= v["U"], (spec, name, v)
             assert 0 < v["U"] < 0.02, (spec, name, v)  # well under a µm, not a placeholder
         assert rc == 0 and "PASS" in out
+    # the calibration's own gauge scan is refused (exit 1, one line): its radius was an
+    # input of the calibration, so it would come back as its nominal value
+    folder, cal_path, obs_path, _ = calibrated
+    from scheimflux.io import read_observations
+
+    own = str(folder / "own-gauge.json")
+    write_stripes(own, read_observations(obs_path).stage.frames, overwrite=True)
+    rc, _, err = _run(["verify", cal_path, own, "--artefact", "cylinder:17.5",
+                       "--observations", obs_path], capsys)  # fmt: skip
+    assert rc == 1 and "own ring-gauge scan" in err and len(err.strip().splitlines()) == 1
     # a wrong nominal (50 µm off, ≫ U) fails with exit status 3
     rc, out, doc = _verify(calibrated, ring, "cylinder:17.25", [], capsys)
     assert rc == 3 and "FAIL" in out and not doc["passed"]

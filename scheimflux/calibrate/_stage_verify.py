@@ -222,6 +222,7 @@ def verify_artefact(
     """
     from ..metrology._labels import label_steps
     from ..metrology._stripes import measure_stripes
+    from ._own_gauge import frames_on_calibration_gauge, own_gauge_message
 
     if kind not in ARTEFACTS:
         raise ValueError(f"unknown artefact {kind!r} (one of {', '.join(ARTEFACTS)})")
@@ -237,6 +238,11 @@ def verify_artefact(
         raise ValueError("the scan holds no stripe pixels")
     uv = np.concatenate(frames)
     fi = np.concatenate([np.full(len(f), i, np.float64) for i, f in enumerate(frames)])
+    own = frames_on_calibration_gauge(cal, uv, fi)
+    if own:
+        used = sum(len(f) > 0 for f in frames)
+        raise ValueError(own_gauge_message(cal, own, used) + ": verify with an artefact "
+                         "not used to calibrate")  # fmt: skip
     notes = []
     rotary = kind in ("cylinder", "sphere-pair")
     if rotary:

@@ -12,6 +12,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..calibrate import diagnostics as calibration_diagnostics, residual_function
+from ..calibrate._own_gauge import frames_on_calibration_gauge, own_gauge_message
 from ..reconstruct import intersect_ray_plane
 from ._gum import Measurement, _check_labels, _checked_fit, _fit_stats, _measurement
 from ._shapes import AbstractShape
@@ -199,6 +200,7 @@ def measure_stripes(
             raise ValueError("frame='measurement' needs frame_index (the frame of each pixel)")
         frame_index = 0
     fi = np.broadcast_to(np.asarray(frame_index, dtype=np.float64), (n,)).copy()
+    own = frames_on_calibration_gauge(cal, uv, fi)
     diag = _joint_covariance(cal, diag, source)
     _, params, spec = residual_function(cal, "joint")
     prefixes = ("camera.", "plane.") + (("stage.",) if frame == "measurement" else ())
@@ -279,6 +281,8 @@ def measure_stripes(
                 f"{n_out} of {len(uv)} pixels lie outside the calibration's coverage: the "
                 "model extrapolates there, and its error is not in the budget"
             )
+    if own:  # first: it says what the value means
+        notes.insert(0, own_gauge_message(cal, own, len(np.unique(fi))))
     notes.append(
         f"calibration: covariance of {len(idx)} {'/'.join(p.rstrip('.') for p in prefixes)} "
         f"parameters ({diag.block} solve, {cov_note})"
