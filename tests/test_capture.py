@@ -83,6 +83,7 @@ def test_find_captures_layouts(tmp_path):
     for name in ("view_0.jpg", "view_1_board.PNG", "view_1_stripe.png", "view_10_board.tif",
                  "view_2_stripe.bmp", "notes.txt", "view_x.png"):  # fmt: skip
         (tmp_path / name).write_bytes(b"")
+    (tmp_path / "scan").mkdir()  # a sub-folder (e.g. the scan's frames): listed as "scan/"
     views, ignored = find_captures(tmp_path)
     assert [(v.view, v.layout, v.names) for v in views] == [
         (0, "single", ("view_0.jpg",)),
@@ -91,7 +92,7 @@ def test_find_captures_layouts(tmp_path):
         (10, "pair", ("view_10_board.tif",)),
     ]
     assert views[2].board is None and views[3].stripe is None
-    assert ignored == ["notes.txt", "view_x.png"]
+    assert ignored == ["notes.txt", "scan/", "view_x.png"]
     # a laser-off image beside a single image joins its view
     (tmp_path / "view_0_off.png").write_bytes(b"")
     views, _ = find_captures(tmp_path)

@@ -73,11 +73,12 @@ class CaptureView:
 def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[str]]:
     """The views of a capture folder (see the module doc) and the names ignored.
 
-    **Returns:** `(views, ignored)`: views sorted by number, ignored file names in
-    natural order. Raises `ValueError` naming the files when a view has two images of one
-    kind (e.g. `view_3.png` and `view_3.jpg`, or `view_3.png` and `view_3_board.png`) or
-    a laser-off image without its single image (`view_3_off.png` beside a pair, or
-    alone), and `NotADirectoryError`/`FileNotFoundError` for a missing folder.
+    **Returns:** `(views, ignored)`: views sorted by number, ignored names in natural
+    order (a folder's with a trailing "/"). Raises `ValueError` naming the files when a
+    view has two images of one kind (e.g. `view_3.png` and `view_3.jpg`, or `view_3.png`
+    and `view_3_board.png`) or a laser-off image without its single image
+    (`view_3_off.png` beside a pair, or alone), and `NotADirectoryError` /
+    `FileNotFoundError` for a missing folder.
     """
     folder = os.fspath(folder)
     if not os.path.exists(folder):
@@ -90,7 +91,7 @@ def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[st
         path = os.path.join(folder, name)
         m = _VIEW.match(name)
         if m is None or not os.path.isfile(path):
-            ignored.append(name)
+            ignored.append(name + "/" if os.path.isdir(path) else name)  # a folder shown as one
             continue
         k, kind = int(m.group(1)), (m.group(2) or "single").lower()
         slot = slots.setdefault(k, {})

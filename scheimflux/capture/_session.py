@@ -101,7 +101,8 @@ def detect_session(
 
     if report.ignored:
         shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
-        note(f"ignored {len(report.ignored)} file(s) not named like a capture: {shown}")
+        note(f"ignored {len(report.ignored)} name(s) not like a capture "
+             f"(view_<k>[_board|_stripe|_off].<ext>): {shown}")
     if scan is not None:
         stage = extract_scan(
             scan,
