@@ -152,16 +152,35 @@ def _affine3(M, su, sv):
     return su[..., None] * M[:, 0] + sv[..., None] * M[:, 1] + M[:, 2]
 
 
-def _divide_valid(P, m, su, sv, code):
+def _ok_per_coordinate(code, H3):
+    """`code == OK` for each of a point's three coordinates, `(*batch, 3)`, written so
+    that the compiled points loop is vectorised.
+
+    XLA:CPU emits the `(*batch, 3)` output as a loop over the pixels around a loop over
+    the three coordinates. A mask that depends on the pixel only is invariant in the
+    inner loop, and LLVM unswitches that loop on it: the body becomes a branch on each
+    pixel's status, which the loop vectoriser does not take, so the points loop ran as
+    scalar code (no vector type in its LLVM IR; the status loop, without an inner loop,
+    was vectorised). Here the mask is `code + z_j == 0` with `z = isnan(H3[:, 0])` as int8,
+    a per-coordinate value computed at run time, so the condition differs between the
+    inner iterations and nothing is unswitched. `z` is 0 unless `H` holds a NaN, and then
+    every `h` is NaN and every status `INVALID_PIXEL`; the codes are ≥ 0, so the mask is
+    exactly `code == OK` in every case (bit-identical points)."""
+    z = jnp.isnan(H3[:, 0]).astype(code.dtype)
+    return (code[..., None] + z) == _OK
+
+
+def _divide_valid(P, m, H3, su, sv, code):
     """`P / q` with `q = m · [u, v, 1]` where `code` is OK, NaN elsewhere (`q` replaced
-    by 1 first: finite gradients of a masked loss).
+    by 1 first: finite gradients of a masked loss). `H3` gives the mask its
+    per-coordinate form (`_ok_per_coordinate`).
 
     `q` is evaluated for each of the three output columns (`_affine3` of a 3×3 matrix
     whose rows are all `m`) rather than once per pixel and broadcast: XLA rewrites
     `P / broadcast(q)` into `P * broadcast(1 / q)` and keeps the (expensive) reciprocal
     out of the output loop, a second pass through memory; three multiply-adds per output
     element cost less than that pass."""
-    good = (code == _OK)[..., None]
+    good = _ok_per_coordinate(code, H3)
     q = _affine3(jnp.stack([m, m, m]), su, sv)
     r = jnp.where(good, q, jnp.ones_like(q))
     return jnp.where(good, P / r, jnp.asarray(jnp.nan, P.dtype))
@@ -171,7 +190,7 @@ def _camera_points(H, su, sv, n, code):
     """Eq. (3) as `(*batch, 3)`: `X = h[:3] / (n · h[:3])`, NaN where `code` is not OK."""
     H3 = H[:3]
     m = n @ H3  # n · h[:3] = m · [u, v, 1]
-    return _divide_valid(_affine3(H3, su, sv), m, su, sv, code)
+    return _divide_valid(_affine3(H3, su, sv), m, H3, su, sv, code)
 
 
 def _measurement_points(stage: RotaryStage, H, su, sv, n, code, frame_index):
@@ -194,7 +213,7 @@ def _measurement_points(stage: RotaryStage, H, su, sv, n, code, frame_index):
     T = c[..., 0] * jnp.stack([t[0], t[1], zt]) + s[..., 0] * jnp.stack([-t[1], t[0], zt])
     T = T + jnp.stack([zt, zt, t[2]])  # (*frames, 3): R_i t_m_c
     P = su[..., None] * W[..., 0] + sv[..., None] * W[..., 1] + W[..., 2]
-    return _divide_valid(P, n @ H[:3], su, sv, code) + T
+    return _divide_valid(P, n @ H[:3], H[:3], su, sv, code) + T
 
 
 def camera_kernel(camera: AbstractCamera, plane: LaserPlane, u, v, sensor=None):
