@@ -225,8 +225,8 @@ def test_undistorted_kernel_is_one_pass_per_output(dtype):
     sensor = jnp.asarray(SENSOR, dtype)
     programs = {
         "camera": k.fast_stripe_to_camera.lower(cam, plane, uv, sensor),
-        "measurement": k.fast_stripe_to_measurement.lower(
-            cam, plane, stage, uv, jnp.arange(n, dtype=dtype), sensor
+        "measurement": k.fast_stripe_to_measurement_cs.lower(
+            cam, plane, stage, uv, *k.frame_cos_sin(stage, jnp.arange(n), dtype), sensor
         ),
     }
     for name, lowered in programs.items():
@@ -356,7 +356,8 @@ cam, plane = sf.paper_thick_lens("scheimpflug-1.5"), sf.paper_laser_plane()
 stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
 uv = jnp.zeros((n, 2), jnp.float32)
 k.fast_stripe_to_camera.lower(cam, plane, uv).compile()
-k.fast_stripe_to_measurement.lower(cam, plane, stage, uv, jnp.arange(n, dtype=uv.dtype)).compile()
+cs = k.frame_cos_sin(stage, jnp.arange(n), uv.dtype)
+k.fast_stripe_to_measurement_cs.lower(cam, plane, stage, uv, *cs).compile()
 """
 
 
