@@ -7,12 +7,13 @@ copy bandwidth, side by side in one process.
 
 The baseline is `scheimflux/reconstruct/_kernel.py` as committed at `REV` (read with
 `git show`, loaded as a sibling module, so it runs on this checkout's cameras and planes);
-"new" is the kernel of this checkout. For each size and dtype the four are called in
+"new" is the kernel of this checkout. For each size and dtype they are called in
 turn within each repeat (one warm-up call each first), `--rounds` times over, and each
 round prints median wall and CPU times (process CPU seconds, all threads) as points per
 second, with `uptime`'s load. Both kernels are called with a fresh result per call and
 with their output buffers donated (`out=`, the previous result reused), which takes the
-page faults of fresh outputs above glibc's mmap threshold out of the comparison. The
+page faults of fresh outputs above glibc's mmap threshold out of the comparison, and
+`stripe_to_measurement`'s kernel on the same pixels as 1000 frames (fresh results). The
 points and statuses of the two kernels are compared (bit for bit) before timing.
 
 The NumPy baseline is the faster of eq. (3) with matrix products and with broadcasts
@@ -82,6 +83,7 @@ def main(argv=None) -> int:
 
     old = load_baseline(args.baseline)
     cam, plane = sf.paper_thick_lens("scheimpflug-1.5"), sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], np.radians(0.5))
     K_f = np.asarray(cam.pixel_to_object_matrix())[:3]
     n_vec = np.asarray(plane.n)
     print(f"baseline {args.baseline}; jax {jax.__version__}; load {_uptime()}", flush=True)
@@ -116,7 +118,23 @@ def main(argv=None) -> int:
             def np_bcast():
                 numpy_eq3_broadcast(K, nn, uv_np)
 
+            # stripe_to_measurement on the same pixels as (1000, N / 1000) frames
+            uv_m = uv.reshape(1000, -1, 2)
+            fi = jnp.arange(1000)[:, None]
+
+            def meas(mod):
+                mod.fast_stripe_to_measurement(cam, plane, stage, uv_m, fi)[0].block_until_ready()
+
+            m_old = old.fast_stripe_to_measurement(cam, plane, stage, uv_m, fi)
+            m_new = new.fast_stripe_to_measurement(cam, plane, stage, uv_m, fi)
+            same_m = bool(
+                np.array_equal(np.asarray(m_old[0]), np.asarray(m_new[0]), equal_nan=True)
+                and np.array_equal(np.asarray(m_old[1]), np.asarray(m_new[1]))
+            )
+            del m_old, m_new
             fns = {
+                "meas_old": partial(meas, old),
+                "meas_new": partial(meas, new),
                 "old": partial(fresh, old),
                 "new": partial(fresh, new),
                 "old_out": partial(into, old, "old"),
@@ -149,13 +167,15 @@ def main(argv=None) -> int:
 
                 print(
                     f"N={size:.0e} {dtype} round {r + 1} load {load} copy {bw:.1f} GB/s "
-                    f"(old == new bit for bit: {same})\n"
+                    f"(old == new bit for bit: camera {same}, measurement {same_m})\n"
                     + "".join(
                         f"  {k:12s} wall {mps(w[k]):6.0f} Mpts/s  CPU {mps(c[k]):6.0f} Mpts/CPU-s"
                         f"  {minbytes / w[k] / 1e9 / bw:5.0%} of copy\n"
                         for k in fns
                     )
-                    + f"  new/old {w['old'] / w['new']:.2f}x wall {c['old'] / c['new']:.2f}x CPU;"
+                    + f"  measurement new/old {w['meas_old'] / w['meas_new']:.2f}x wall "
+                    f"{c['meas_old'] / c['meas_new']:.2f}x CPU;"
+                    f" new/old {w['old'] / w['new']:.2f}x wall {c['old'] / c['new']:.2f}x CPU;"
                     f" new_out/old_out {w['old_out'] / w['new_out']:.2f}x wall "
                     f"{c['old_out'] / c['new_out']:.2f}x CPU; new/NumPy({npk}) "
                     f"{w[npk] / w['new']:.2f}x wall {c[npk] / c['new']:.2f}x CPU; new_out/NumPy "
