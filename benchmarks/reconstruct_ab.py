@@ -118,8 +118,8 @@ def main(argv=None) -> int:
             def np_bcast():
                 numpy_eq3_broadcast(K, nn, uv_np)
 
-            # stripe_to_measurement on the same pixels as (1000, N / 1000) frames
-            uv_m = uv.reshape(1000, -1, 2)
+            # stripe_to_measurement on the same pixels as 1000 frames (the first 1000 k)
+            uv_m = uv[: size - size % 1000].reshape(1000, -1, 2)
             fi = jnp.arange(1000)[:, None]
 
             def meas(mod):
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
                     return size / sec / 1e6
 
                 print(
-                    f"N={size:.0e} {dtype} round {r + 1} load {load} copy {bw:.1f} GB/s "
+                    f"N={size} {dtype} round {r + 1} load {load} copy {bw:.1f} GB/s "
                     f"(old == new bit for bit: camera {same}, measurement {same_m})\n"
                     + "".join(
                         f"  {k:12s} wall {mps(w[k]):6.0f} Mpts/s  CPU {mps(c[k]):6.0f} Mpts/CPU-s"
