@@ -225,8 +225,8 @@ def test_undistorted_kernel_is_one_pass_per_output(dtype):
     sensor = jnp.asarray(SENSOR, dtype)
     programs = {
         "camera": k.fast_stripe_to_camera.lower(cam, plane, uv, sensor),
-        "measurement": k.fast_stripe_to_measurement.lower(
-            cam, plane, stage, uv, jnp.arange(n, dtype=dtype), sensor
+        "measurement": k.fast_stripe_to_measurement_cs.lower(
+            cam, plane, stage, uv, *k.frame_cos_sin(stage, jnp.arange(n), dtype), sensor
         ),
     }
     for name, lowered in programs.items():
@@ -273,3 +273,121 @@ def test_measurement_gradients_equal_reference():
         for a, b in zip(g_fast, g_ref):
             assert np.all(np.isfinite(np.asarray(a)))
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=floor)
+
+
+# The points loop is vectorised by XLA:CPU's LLVM only for batches of a few thousand
+# pixels and up (the 400 pixels above run its scalar form): 4096 pixels, the size at
+# which both loops were seen vectorised in the compiled code.
+_N_VEC = 4096
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_vectorised_batch_equals_reference(dtype):
+    cam, plane = _cameras()["thick"], sf.paper_laser_plane()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    uv64 = _pixels(_N_VEC, seed=1)
+    ref = _reference(cam, plane, uv64, SENSOR)
+    uv = uv64.astype(dtype)
+    fast = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+    status, ok = np.asarray(fast.status), np.asarray(ref.status) == 0
+    np.testing.assert_array_equal(status, np.asarray(ref.status))
+    assert ok.sum() > _N_VEC // 2 and set(status.tolist()) == {0, 1, 5}
+    p, p_ref = np.asarray(fast.points, np.float64), np.asarray(ref.points)
+    assert np.isnan(p[~ok]).all()
+    err = np.linalg.norm(p[ok] - p_ref[ok], axis=1) / np.linalg.norm(p_ref[ok], axis=1)
+    # float64: a dozen roundings of 1.1e-16 (test_fast_equals_reference: 1e-12); float32:
+    # the 3e-6 of the point's norm derived in test_float32_within_derived_tolerance (the
+    # float32 pixels are the float64 ones rounded, 6e-8 relative, inside that bound).
+    assert err.max() < (3e-6 if dtype == np.float32 else 1e-12)
+    # jit == eager: op-by-op execution has no fused loop (and no vectorised one); the
+    # same roundings up to an FMA contraction per product under jit, within one rounding
+    # of the float type per operation of the dozen above.
+    with jax.disable_jit():
+        eager = sf.stripe_to_camera(cam, plane, uv, sensor_size=SENSOR)
+    np.testing.assert_array_equal(np.asarray(eager.status), status)
+    e = np.asarray(eager.points, np.float64)
+    assert np.isnan(e[~ok]).all()
+    tol = 12 * np.finfo(dtype).eps
+    assert (np.linalg.norm(p[ok] - e[ok], axis=1) / np.linalg.norm(e[ok], axis=1)).max() < tol
+    # measurement frame, the same pixels as 4 frames
+    fi = np.arange(4)[:, None]
+    m = sf.stripe_to_measurement(cam, plane, stage, uv.reshape(4, -1, 2), fi, sensor_size=SENSOR)
+    c, pl, s = _cast_floats((cam, plane, stage), jnp.float64)
+    m_ref = reference_stripe_to_measurement(
+        c, pl, s, jnp.asarray(uv64.reshape(4, -1, 2)), jnp.broadcast_to(fi, (4, _N_VEC // 4)),
+        jnp.asarray(SENSOR, float),
+    )
+    np.testing.assert_array_equal(np.asarray(m.status), np.asarray(m_ref.status))
+    pm = np.asarray(m.points, np.float64).reshape(-1, 3)
+    pm_ref = np.asarray(m_ref.points).reshape(-1, 3)
+    assert np.isnan(pm[~ok]).all()
+    err = np.linalg.norm(pm[ok] - pm_ref[ok], axis=1) / np.linalg.norm(pm_ref[ok], axis=1)
+    assert err.max() < (3e-6 if dtype == np.float32 else 1e-12)
+
+
+@pytest.mark.parametrize("leaf", ["f", "x0"])
+def test_nan_camera_gives_invalid_pixels_and_nan_points(leaf):
+    # The points loop's mask is `status + isnan(H[:3, 0]) == 0` per coordinate (so that
+    # LLVM vectorises the loop, `_kernel._ok_per_coordinate`): equal to `status == OK`
+    # because a NaN in H makes every status INVALID_PIXEL. A NaN focal length puts NaN
+    # in every entry of H (the mask's extra term is 1), a NaN x0 in its last column only
+    # (the term is 0); both must give the reference's statuses (all invalid) and NaN.
+    cam = eqx.tree_at(lambda c: getattr(c, leaf), _cameras()["thick"], jnp.asarray(np.nan))
+    plane = sf.paper_laser_plane()
+    uv = _pixels(_N_VEC, seed=2)
+    fast = sf.stripe_to_camera(cam, plane, uv)
+    ref = _reference(cam, plane, uv, None)
+    np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
+    assert (np.asarray(fast.status) == sf.Status.INVALID_PIXEL).all()
+    assert np.isnan(np.asarray(fast.points)).all()
+    stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+    m = sf.stripe_to_measurement(cam, plane, stage, uv, 3)
+    assert (np.asarray(m.status) == sf.Status.INVALID_PIXEL).all()
+    assert np.isnan(np.asarray(m.points)).all()
+
+
+_VECTOR_CHILD = r"""
+import math, sys
+import jax.numpy as jnp, numpy as np
+import scheimflux as sf
+from scheimflux.reconstruct import _kernel as k
+n = int(sys.argv[1])
+cam, plane = sf.paper_thick_lens("scheimpflug-1.5"), sf.paper_laser_plane()
+stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
+uv = jnp.zeros((n, 2), jnp.float32)
+k.fast_stripe_to_camera.lower(cam, plane, uv).compile()
+cs = k.frame_cos_sin(stage, jnp.arange(n), uv.dtype)
+k.fast_stripe_to_measurement_cs.lower(cam, plane, stage, uv, *cs).compile()
+"""
+
+
+@pytest.mark.slow
+def test_both_loops_are_vectorised(tmp_path):
+    # Issue 14: the status and points loops of the compiled kernel are SIMD code (LLVM
+    # vector types in XLA's optimised IR of each loop), for the camera and the
+    # measurement frame. The points loop was scalar before its mask was made
+    # per-coordinate (LLVM unswitched its inner loop on the status).
+    import glob
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, XLA_FLAGS=f"--xla_dump_to={tmp_path}", SCHEIMFLUX_CACHE_DIR="off")
+    subprocess.run(
+        [sys.executable, "-c", _VECTOR_CHILD, str(_N_VEC)], env=env, check=True, timeout=600
+    )
+    seen = {}
+    for hlo in glob.glob(str(tmp_path / "*fast_stripe_to_*.cpu_after_optimizations.txt")):
+        text = Path(hlo).read_text()
+        prefix = hlo[: -len("cpu_after_optimizations.txt")]
+        program = "measurement" if "measurement" in hlo else "camera"
+        loops = re.findall(rf"^\s*(?:ROOT )?%(\S+) = \w+\[{_N_VEC}(?:,3)?\]\S* fusion\(",
+                           text[text.index("ENTRY"):], re.M)
+        for name in loops:
+            (ir,) = glob.glob(f"{prefix}{name}_kernel_module.ir-with-opt.ll")
+            vectors = re.findall(r"<(\d+) x float>", Path(ir).read_text())
+            seen[(program, name)] = max((int(v) for v in vectors), default=0)
+    assert len(seen) == 4, seen  # status and points loop of each program
+    assert all(width >= 4 for width in seen.values()), seen
