@@ -18,6 +18,7 @@ column-scaled state vector and its block structure.)
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Sequence
 
@@ -171,7 +172,9 @@ class Fit:
 
     **Fields:**
     - `params`: the solved pytree (frozen leaves untouched).
-    - `converged`: whether optimistix reported success.
+    - `converged`: whether optimistix reported success, or the solve reached its step
+      limit within `AT_OPTIMUM_SIGMA` of the optimum (`stats["remaining_step_sigma"]`,
+      [`remaining_step_sigma`][]).
     - `message`: optimistix's result message ("" when converged).
     - `steps`: number of Levenberg–Marquardt steps (accepted and rejected).
     - `residuals`: the final (weighted, unitless) residual vector.
@@ -534,6 +537,13 @@ def least_squares(
     finite = bool(np.all(np.isfinite(r_h)))
     ok = bool(result == optx.RESULTS.successful) and finite
     message = result_message(result, finite)
+    if finite and result == optx.RESULTS.nonlinear_max_steps_reached:
+        # at the step limit: converged if the optimum is closer than a tiny fraction of
+        # every parameter's σ (what the state-change test misses along weak valleys)
+        gap = remaining_step_sigma(end_structure, B_end, r_h, free)
+        stats["remaining_step_sigma"] = gap
+        if gap <= AT_OPTIMUM_SIGMA:
+            ok, message = True, ""
     fit = Fit(
         params=eqx.combine(jax.device_put(unravel(x_end_h)), static),
         converged=bool(ok),
@@ -565,6 +575,36 @@ def least_squares(
 
 
 _RESULT_TREE = jax.tree.structure(optx.RESULTS.successful)
+
+#: A solve stopped by its step limit counts as converged when the Gauss–Newton step that
+#: remains moves no free parameter by more than this fraction of its σ.
+AT_OPTIMUM_SIGMA = 1e-3
+
+
+def remaining_step_sigma(structure, B, r, free) -> float:
+    """The largest |δᵢ| / σᵢ of the Gauss–Newton step `δ = −(JᵀJ)⁻¹ Jᵀ r` over the free
+    parameters, σᵢ = √((JᵀJ)⁻¹)ᵢᵢ (residuals in units of their σ): how far the solution
+    is from the optimum of the linearised problem, in each parameter's own uncertainty.
+
+    Levenberg–Marquardt's convergence test is on the change of the unit-column-scaled
+    state. Along a weak valley of the cost (a flat direction with eigenvalue ~1e-13 of the
+    scaled `JᵀJ`, e.g. few board views) the steps stay large in those units while the cost
+    changes by 1e-10 and the parameters by 1e-5 σ: the test never passes at the optimum.
+    Measured on 3 views at ×1 with a ring-gauge scan: 300 steps, remaining step 1.5e-5 σ,
+    distances 0.016 µm RMS against the ray tracer. Computed on the host (dense `J`, the
+    eigendecomposition of the scaled `JᵀJ`); `inf` where `JᵀJ` is singular.
+    """
+    J = _dense_jacobian(structure, np.asarray(B))[:, np.flatnonzero(free)]
+    col = np.linalg.norm(J, axis=0)
+    if not np.all(col > 0):
+        return math.inf
+    Js = J / col
+    lam, V = np.linalg.eigh(Js.T @ Js)
+    if not lam[0] > RANK_RTOL * lam[-1]:
+        return math.inf
+    step = -V @ ((V.T @ (Js.T @ np.asarray(r))) / lam)
+    sigma = np.sqrt(np.einsum("ik,k->i", V**2, 1.0 / lam))
+    return float(np.max(np.abs(step) / sigma))
 
 
 @exported_jit

@@ -115,6 +115,9 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
         lines.append(f"gauge RMS: {_num(d['gauge_rms_mm'], 1e3, '.3f')} um")
     for name, s in d.get("solves", {}).items():
         ok = "converged" if s["converged"] else f"NOT converged ({s.get('message', '')})"
+        if s.get("remaining_step_sigma") is not None:
+            ok += (f" (step limit reached {s['remaining_step_sigma']:.1e} σ from the "
+                   "optimum)")  # fmt: skip
         lines.append(f"solve {name:<7}: {s['steps']:>4} steps, {s['time_s']:7.2f} s, {ok}")
     lines.append(f"frozen: {', '.join(d.get('frozen', [])) or '(none)'}")
     return "\n".join(lines)

@@ -185,6 +185,13 @@ def plane_to_dict(plane: LaserPlane) -> dict:
     }
 
 
+def _remaining_step(fit) -> dict:
+    """`{"remaining_step_sigma": x}` for a solve that stopped at its step limit (how far
+    from the optimum, in σ: `_solve.remaining_step_sigma`); `{}` otherwise."""
+    x = (getattr(fit, "stats", None) or {}).get("remaining_step_sigma")
+    return {} if x is None or not math.isfinite(x) else {"remaining_step_sigma": float(x)}
+
+
 def stage_to_dict(stage: RotaryStage, eccentricity_mm=None) -> dict:
     doc = {
         "R_m_c": _floats(stage.R_m_c),
@@ -302,6 +309,7 @@ def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
                     "time_s": float(fit.time_s),
                     "cost": float(fit.cost),
                     **({"message": str(fit.message)} if fit.message else {}),
+                    **_remaining_step(fit),
                 }
                 for name, fit in fits.items()
             },
