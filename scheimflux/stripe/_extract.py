@@ -229,11 +229,19 @@ def _signal(image, background, channel, width, normalise, gain=1.0, mask=None):
     plain, off_level, base = sig, None, None
     if background is not None:
         base, level = channel_image(off, channel)
-        base = _denoised(base.astype(np.float32), BILATERAL_PX, BILATERAL_SIGMA_PX)
+        base = base.astype(np.float32)
+        # the laser-off frame's noise: at the 2 x 2 block scale where that reads more
+        # (a JPEG removes it at the pixel scale, where a quality 85 frame reads 0.3 grey
+        # levels for the 1.2 put in, and neither filter below would smooth it)
+        noise = max(estimate_noise(base), block_noise(base))
+        base = _denoised(base, BILATERAL_PX, BILATERAL_SIGMA_PX, noise)
         sig = plain = sig.astype(np.float32) - base
         off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
-            sig = _albedo_normalised(sig, _off_level(level.astype(np.float32)), blur=0.0)
+            lev = level.astype(np.float32)
+            if img.ndim == 3:
+                noise = max(estimate_noise(lev), block_noise(lev))
+            sig = _albedo_normalised(sig, _off_level(lev, noise), blur=0.0)
     return sig, sat, channel, plain, off_level, base, ranked
 
 
@@ -298,19 +306,22 @@ def _others_mean(image: Any, channel: str) -> np.ndarray:
     return 0.5 * (a + b)
 
 
-def _denoised(off: np.ndarray, px: int = 5, sigma_px: float = 1.5) -> np.ndarray:
+def _denoised(
+    off: np.ndarray, px: int = 5, sigma_px: float = 1.5, noise: float | None = None
+) -> np.ndarray:
     """The laser-off frame with its noise smoothed away but its edges kept (a bilateral
     filter, `px` wide with a spatial sigma `sigma_px`, grey-level scale four noise
     stds): subtracted as it is, the laser-off frame adds its own noise to the
     difference (sqrt(2) x the centre RMS), while a plain blur would smear the albedo
-    edges it is there to remove."""
-    noise = estimate_noise(off)
+    edges it is there to remove. `noise`: the frame's noise std (default: its pixel
+    estimate)."""
+    noise = estimate_noise(off) if noise is None else noise
     if not noise > 0:
         return off
     return cv2.bilateralFilter(off, px, 4.0 * noise, sigma_px)
 
 
-def _off_level(off: np.ndarray) -> np.ndarray:
+def _off_level(off: np.ndarray, noise: float) -> np.ndarray:
     """The laser-off level that `_albedo_normalised` divides by (float32): the mean over
     (2 FLAT_RADIUS_PX + 1)^2 pixels where the frame is flat there, its 0.7 px Gaussian
     blur near an albedo edge, blended in between.
@@ -325,8 +336,7 @@ def _off_level(off: np.ndarray) -> np.ndarray:
     ramp's feet, which biased a line running along a checker edge by +0.013-0.018 px.
     Flat: the 0.7 px blur's range (max - min) over the window under FLAT_RANGE[0] noise
     stds (the blurred noise's own range over 121 pixels stays under ~2.5 stds); an edge
-    from FLAT_RANGE[1] stds on, linear in between."""
-    noise = estimate_noise(off)
+    from FLAT_RANGE[1] stds on, linear in between (`noise`: the frame's noise std)."""
     near = cv2.GaussianBlur(off, (0, 0), 0.7)
     if not noise > 0:
         return near
