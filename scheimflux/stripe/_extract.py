@@ -72,6 +72,15 @@ CLIPPED_PROFILE_FRAC = 0.1
 _NOISE_POOL = 15
 # Lowest ratio of that noise to the frame's estimate.
 _LOCAL_NOISE_MIN = 0.25
+# The laser-off frame subtracted from a laser-on image of the same exposure: its
+# edge-keeping denoising (`_denoised`), the bilateral filter's diameter and spatial
+# sigma (px); and the laser-off level divided by (`_off_level`): the half-width (px) of
+# the mean taken where the frame is flat, and the range of the frame's 0.7 px blur over
+# that window (noise stds) below which it is flat and from which it holds an edge.
+BILATERAL_PX = 9
+BILATERAL_SIGMA_PX = 3.0
+FLAT_RADIUS_PX = 5
+FLAT_RANGE = (3.0, 5.0)
 # Scan lines on each side of a refused one on a long-ridge track whose centres must
 # also agree with a straight line through the others: the print refuses the line where
 # an albedo edge lies under its profile, and the centres next to a refusal are the ones
@@ -220,11 +229,19 @@ def _signal(image, background, channel, width, normalise, gain=1.0, mask=None):
     plain, off_level, base = sig, None, None
     if background is not None:
         base, level = channel_image(off, channel)
-        base = _denoised(base.astype(np.float32))
+        base = base.astype(np.float32)
+        # the laser-off frame's noise: at the 2 x 2 block scale where that reads more
+        # (a JPEG removes it at the pixel scale, where a quality 85 frame reads 0.3 grey
+        # levels for the 1.2 put in, and neither filter below would smooth it)
+        noise = max(estimate_noise(base), block_noise(base))
+        base = _denoised(base, BILATERAL_PX, BILATERAL_SIGMA_PX, noise)
         sig = plain = sig.astype(np.float32) - base
         off_level = level
         if normalise:  # the plain channel's laser-off level: albedo x ambient light
-            sig = _albedo_normalised(sig, level.astype(np.float32))
+            lev = level.astype(np.float32)
+            if img.ndim == 3:
+                noise = max(estimate_noise(lev), block_noise(lev))
+            sig = _albedo_normalised(sig, _off_level(lev, noise), blur=0.0)
     return sig, sat, channel, plain, off_level, base, ranked
 
 
@@ -289,15 +306,47 @@ def _others_mean(image: Any, channel: str) -> np.ndarray:
     return 0.5 * (a + b)
 
 
-def _denoised(off: np.ndarray) -> np.ndarray:
+def _denoised(
+    off: np.ndarray, px: int = 5, sigma_px: float = 1.5, noise: float | None = None
+) -> np.ndarray:
     """The laser-off frame with its noise smoothed away but its edges kept (a bilateral
-    filter with a grey-level scale of four noise stds): subtracted as it is, the
-    laser-off frame adds its own noise to the difference (sqrt(2) x the centre RMS),
-    while a plain blur would smear the albedo edges it is there to remove."""
-    noise = estimate_noise(off)
+    filter, `px` wide with a spatial sigma `sigma_px`, grey-level scale four noise
+    stds): subtracted as it is, the laser-off frame adds its own noise to the
+    difference (sqrt(2) x the centre RMS), while a plain blur would smear the albedo
+    edges it is there to remove. `noise`: the frame's noise std (default: its pixel
+    estimate)."""
+    noise = estimate_noise(off) if noise is None else noise
     if not noise > 0:
         return off
-    return cv2.bilateralFilter(off, 5, 4.0 * noise, 1.5)
+    return cv2.bilateralFilter(off, px, 4.0 * noise, sigma_px)
+
+
+def _off_level(off: np.ndarray, noise: float) -> np.ndarray:
+    """The laser-off level that `_albedo_normalised` divides by (float32): the mean over
+    (2 FLAT_RADIUS_PX + 1)^2 pixels where the frame is flat there, its 0.7 px Gaussian
+    blur near an albedo edge, blended in between.
+
+    The divisor multiplies the line's profile, so its noise across the line moves the
+    centre as additive noise of the same relative size would: with the 0.7 px blur alone
+    (noise / 2.5) it was half the error over the paper rig's black squares. The print is
+    piecewise constant, and the room light smooth, so away from an edge a wide plain
+    mean is unbiased and 11 x less noisy than a pixel; near an edge the divisor stays
+    the linear 0.7 px blur, whose edge profile matches the laser-on image's (the same
+    optics blurred both): an edge-keeping filter there (a bilateral filter) steepens the
+    ramp's feet, which biased a line running along a checker edge by +0.013-0.018 px.
+    Flat: the 0.7 px blur's range (max - min) over the window under FLAT_RANGE[0] noise
+    stds (the blurred noise's own range over 121 pixels stays under ~2.5 stds); an edge
+    from FLAT_RANGE[1] stds on, linear in between (`noise`: the frame's noise std)."""
+    near = cv2.GaussianBlur(off, (0, 0), 0.7)
+    if not noise > 0:
+        return near
+    side = 2 * FLAT_RADIUS_PX + 1
+    box = cv2.getStructuringElement(cv2.MORPH_RECT, (side, side))
+    spread = cv2.dilate(near, box) - cv2.erode(near, box)
+    wide = cv2.blur(off, (side, side), borderType=cv2.BORDER_REFLECT)
+    lo, hi = FLAT_RANGE
+    w = np.clip((hi * noise - spread) / ((hi - lo) * noise), 0.0, 1.0).astype(np.float32)
+    return near + w * (wide - near)
 
 
 def _albedo_normalised(diff: np.ndarray, off: np.ndarray, blur: float = 0.7) -> np.ndarray:
