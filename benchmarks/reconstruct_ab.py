@@ -28,7 +28,6 @@ import importlib.util
 import os
 import subprocess
 import sys
-import time
 from functools import partial
 
 import numpy as np
@@ -36,7 +35,12 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-from reconstruct import copy_bandwidth, numpy_eq3, numpy_eq3_broadcast  # noqa: E402
+from reconstruct import (  # noqa: E402
+    _interleaved,
+    copy_bandwidth,
+    numpy_eq3,
+    numpy_eq3_broadcast,
+)
 
 
 def load_baseline(rev: str):
@@ -146,18 +150,9 @@ def main(argv=None) -> int:
             for r in range(args.rounds):
                 load = _uptime()
                 bw = copy_bandwidth()
-                for fn in fns.values():
-                    fn()
-                wall = {k: [] for k in fns}
-                cpu = {k: [] for k in fns}
-                for _ in range(reps):
-                    for k, fn in fns.items():
-                        c, t = time.process_time(), time.perf_counter()
-                        fn()
-                        wall[k].append(time.perf_counter() - t)
-                        cpu[k].append(time.process_time() - c)
-                w = {k: float(np.median(v)) for k, v in wall.items()}
-                c = {k: float(np.median(v)) for k, v in cpu.items()}
+                timed = _interleaved(fns, reps)
+                w = {k: v["wall"] for k, v in timed.items()}
+                c = {k: v["cpu"] for k, v in timed.items()}
                 npk = min(("numpy_blas", "numpy_bcast"), key=w.get)
                 item = np.dtype(dtype).itemsize
                 minbytes = size * (5 * item + 1)  # 2 floats in, 3 out, 1 status byte
