@@ -351,10 +351,14 @@ def main(argv=None) -> int:
     ap.add_argument("--min-points", type=float, default=1e4)
     ap.add_argument("--stream-frames", default="1000,10000", help="frame counts, or ''")
     ap.add_argument("--json", metavar="ROWS.json", help="also write the rows as JSON")
+    ap.add_argument("--label", default="", help="appended to every operation's name")
+    ap.add_argument(
+        "--copy-gbps", type=float, help="the copy bandwidth to compare with (else measured)"
+    )
     args = ap.parse_args(argv)
     max_n = 1e5 if args.quick else args.max_points
     repeats = 2 if args.quick else args.repeats
-    bw = copy_bandwidth()
+    bw = args.copy_gbps or copy_bandwidth()
     print(f"load: {os.getloadavg()}  NumPy copy bandwidth {bw:.1f} GB/s", flush=True)
     print("| operation | size | ours | baseline | ratio | compile s | note |")
     print("|---|---|---|---|---|---|---|")
@@ -365,6 +369,8 @@ def main(argv=None) -> int:
     if args.quick:
         counts = [c for c in counts if c <= 1000] or counts[:1]
     rows += bench_stream(counts)
+    for r in rows:
+        r["operation"] += args.label
     print(f"load after: {os.getloadavg()}; peak RSS here "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10:.0f} MiB")  # fmt: skip
     if args.json:

@@ -4,7 +4,8 @@
 
 Runs, each in its own subprocess (a clean process per measurement):
 - `benchmarks/reconstruct.py` (kernel vs NumPy with the copy bandwidth; streaming vs
-  in-memory with peak RSS);
+  in-memory with peak RSS), then its kernels at >= 1e6 points again in a process whose
+  glibc malloc keeps freed memory (`KEPT_MALLOC`: fresh results without page faults);
 - the import time of `scheimflux` and of `scheimflux --help` (median of 5 fresh
   interpreters), beside `python -c pass` and `import jax` in the same run;
 - optionally `benchmarks/stripe.py` and `benchmarks/calibrate.py` (`--quick`), whose
@@ -90,12 +91,19 @@ def _row(r: dict) -> str:
     )
 
 
-def _script(name: str, args: list[str]) -> str:
+# glibc malloc settings under which a freed result's memory is reused by the next one
+# (docs/throughput.md, "Fresh results and the allocator"): one arena (XLA's worker
+# threads otherwise allocate from per-thread arenas, whose large blocks are mmap'ed and
+# unmapped on free), no mmap, no trimming of the heap's top.
+KEPT_MALLOC = {"MALLOC_ARENA_MAX": "1", "MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "4294967295"}
+
+
+def _script(name: str, args: list[str], env_extra: dict | None = None) -> str:
     r = subprocess.run(
         [sys.executable, os.path.join(HERE, name), *args],
         capture_output=True,
         text=True,
-        env=_env(),
+        env={**_env(), **(env_extra or {})},
     )
     text = r.stdout.strip()
     if r.returncode:
@@ -120,13 +128,32 @@ def main(argv=None) -> int:
             return 1
         with open(rows_path) as fh:
             rec = json.load(fh)
-    rows = rec["rows"] + import_time()
+        rows = rec["rows"]
+        if not args.quick:
+            # The same kernels at >= 1e6 points, fresh results, with glibc keeping freed
+            # memory (no page faults per call), compared with the same bandwidth.
+            kept = [
+                *("--min-points", "1e6", "--stream-frames", "", "--json", rows_path),
+                *("--copy-gbps", str(rec["copy_GBps"]), "--label", ", malloc kept"),
+            ]
+            os.remove(rows_path)
+            log = _script("reconstruct.py", kept, KEPT_MALLOC)
+            if not os.path.exists(rows_path):
+                print(log)
+                return 1
+            with open(rows_path) as fh:
+                kept_rows = json.load(fh)["rows"]
+            rows += [r for r in kept_rows if "out=" not in r["operation"]]
+    rows += import_time()
     load1 = os.getloadavg()
     lines = [
         f"Run {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
         f"`python benchmarks/run.py{' --quick' if args.quick else ''}`, {os.cpu_count()} "
         f"CPUs, load average {load0[0]:.1f} before / {load1[0]:.1f} after; NumPy copy "
-        f"bandwidth {rec['copy_GBps']:.1f} GB/s (read + write) in the same run.",
+        f"bandwidth {rec['copy_GBps']:.1f} GB/s (read + write, one thread) in the same run. "
+        "Rows marked \"malloc kept\" ran in a process with "
+        + " ".join(f"`{k}={v}`" for k, v in KEPT_MALLOC.items())
+        + " (freed results reused without page faults; docs/throughput.md).",
         "",
         "| operation | size | ours | baseline | ratio | compile s | note |",
         "|---|---|---|---|---|---|---|",
