@@ -219,7 +219,7 @@ def test_own_gauge_scan_found_and_other_artefacts_not(rig):
     moved by 10 µm on the table, a ring of another radius and a line crossing the gauge's
     stripes are not. All pixels ray-traced."""
     from scheimflux.calibrate._loaded import MissingObservations
-    from scheimflux.calibrate._own_gauge import frames_on_calibration_gauge
+    from scheimflux.calibrate._own_gauge import frames_on_calibration_gauge, is_own_gauge_scan
     from scheimflux.simulate import gauge_scan
 
     stage = default_stage(rig, 17.5, math.radians(30.0))
@@ -241,8 +241,12 @@ def test_own_gauge_scan_found_and_other_artefacts_not(rig):
     assert check(own) == everything
     assert check(scan(seed=2)) == everything  # a fresh scan: new 0.05 px noise
     assert check(own[5:] + own[:5]) == everything  # started 5 steps later
-    # moved 10 µm on the table: its stripe moves ~3-4 px at x1.5 and 4.4 µm pixels
-    assert check(scan(eccentricity_mm=(0.41, -0.3))) == []
+    assert is_own_gauge_scan(check(own), 12)
+    # moved 10 µm on the table: its stripe moves 2.5-5.5 px at x1.5 and 4.4 µm pixels,
+    # except in the 2 frames where the move is along the stripe (within 0.7 px of the
+    # unmoved gauge's stripe there): the scan is not the gauge scan
+    moved = check(scan(eccentricity_mm=(0.41, -0.3)))
+    assert len(moved) <= 2 and not is_own_gauge_scan(moved, 12)
     ring = ring_artefact(rig, stage, 17.2, n_frames=12, noise_px=0.05, seed=3)
     assert check([np.asarray(p, np.float64) for p in ring.px]) == []
     # a straight line through one of the gauge's stripes: a few pixels on it, not 80 %
@@ -257,6 +261,46 @@ def test_own_gauge_scan_found_and_other_artefacts_not(rig):
 
     blind = types.SimpleNamespace(data=MissingObservations("cal.json"))
     assert frames_on_calibration_gauge(blind, own[0]) is None
+
+
+def test_own_gauge_found_at_another_stripe_sampling(rig):
+    """A calibration whose gauge scan holds few centres per frame (the simulator's
+    observations, or a subsampled extraction) against a scan of the same gauge with one
+    centre per scan line (`extract` of its images), and the other way round: the gauge is
+    recognised (matched against its stripe, not against its sampled centres, which lie
+    further apart than the match distance); the gauge moved by 10 µm still is not.
+    (Before: no frame of the dense scan matched, and `verify` measured the calibration's
+    own gauge as its nominal radius.)
+    All pixels ray-traced."""
+    from scheimflux.calibrate._own_gauge import (
+        MATCH_PX,
+        frames_on_calibration_gauge,
+        is_own_gauge_scan,
+    )
+    from scheimflux.simulate import gauge_scan
+
+    stage = default_stage(rig, 17.5, math.radians(30.0))
+    ecc = (0.4, -0.3)
+
+    def scan(n, **kw):
+        kw = {"eccentricity_mm": ecc, "noise_px": 0.05, "seed": 1} | kw
+        s = gauge_scan(rig, stage, 17.5, 12, points_per_frame=n, **kw)
+        return [np.asarray(f.px, np.float64).reshape(-1, 2) for f in s.frames]
+
+    def check(cal, frames):
+        uv = np.concatenate(frames)
+        fi = np.concatenate([np.full(len(f), i) for i, f in enumerate(frames)])
+        return frames_on_calibration_gauge(cal, uv, fi)
+
+    sparse, dense = scan(25), scan(600, seed=2)
+    # the sparse centres lie many match distances apart along the stripe
+    gaps = [np.median(np.linalg.norm(np.diff(f, axis=0), axis=1)) for f in sparse]
+    assert min(gaps) > 8 * MATCH_PX
+    everything = list(range(12))
+    assert check(_gauge_cal(sparse), dense) == everything
+    assert check(_gauge_cal(dense), sparse) == everything
+    moved = scan(600, eccentricity_mm=(0.41, -0.3), seed=3)
+    assert not is_own_gauge_scan(check(_gauge_cal(sparse), moved), 12)
 
 
 # ----------------------------------------------------------------------------- end to end

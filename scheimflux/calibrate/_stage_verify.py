@@ -222,7 +222,12 @@ def verify_artefact(
     """
     from ..metrology._labels import label_steps
     from ..metrology._stripes import measure_stripes
-    from ._own_gauge import frames_on_calibration_gauge, own_gauge_message
+    from ._own_gauge import (
+        few_gauge_frames_message,
+        frames_on_calibration_gauge,
+        is_own_gauge_scan,
+        own_gauge_message,
+    )
 
     if kind not in ARTEFACTS:
         raise ValueError(f"unknown artefact {kind!r} (one of {', '.join(ARTEFACTS)})")
@@ -239,11 +244,13 @@ def verify_artefact(
     uv = np.concatenate(frames)
     fi = np.concatenate([np.full(len(f), i, np.float64) for i, f in enumerate(frames)])
     own = frames_on_calibration_gauge(cal, uv, fi)
-    if own:
-        used = sum(len(f) > 0 for f in frames)
+    used = sum(len(f) > 0 for f in frames)
+    if is_own_gauge_scan(own, used):
         raise ValueError(own_gauge_message(cal, own, used) + ": verify with an artefact "
                          "not used to calibrate")  # fmt: skip
     notes = []
+    if own:  # a few frames on the gauge's stripes: the scan as a whole is another one
+        notes.append(few_gauge_frames_message(own, used))
     rotary = kind in ("cylinder", "sphere-pair")
     if rotary:
         stage = cal.params.stage

@@ -12,7 +12,12 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..calibrate import diagnostics as calibration_diagnostics, residual_function
-from ..calibrate._own_gauge import frames_on_calibration_gauge, own_gauge_message
+from ..calibrate._own_gauge import (
+    few_gauge_frames_message,
+    frames_on_calibration_gauge,
+    is_own_gauge_scan,
+    own_gauge_message,
+)
 from ..reconstruct import intersect_ray_plane
 from ._gum import Measurement, _check_labels, _checked_fit, _fit_stats, _measurement
 from ._shapes import AbstractShape
@@ -281,8 +286,11 @@ def measure_stripes(
                 f"{n_out} of {len(uv)} pixels lie outside the calibration's coverage: the "
                 "model extrapolates there, and its error is not in the budget"
             )
-    if own:  # first: it says what the value means
-        notes.insert(0, own_gauge_message(cal, own, len(np.unique(fi))))
+    n_frames = len(np.unique(fi))
+    if is_own_gauge_scan(own, n_frames):  # first: it says what the value means
+        notes.insert(0, own_gauge_message(cal, own, n_frames))
+    elif own:
+        notes.append(few_gauge_frames_message(own, n_frames))
     notes.append(
         f"calibration: covariance of {len(idx)} {'/'.join(p.rstrip('.') for p in prefixes)} "
         f"parameters ({diag.block} solve, {cov_note})"
