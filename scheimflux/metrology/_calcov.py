@@ -34,6 +34,19 @@ docs/metrology.md the estimated σ_g are the simulated 0.030 / 0.050 / 0.050 px 
 board stripes / gauge), and the measured values' calibration terms equal the equal-
 within-group ones to 1e-4 relative there (the steps and the radius do not depend on the
 views whose stripe residuals are noisier).
+
+Stripe centres are not independent along a line: one centre per scan line, each from a
+filter several pixels wide (and JPEG's 8 × 8 blocks), so neighbouring centres share their
+errors. The sandwich's meat `Σ_i σ²_g a_i J_iᵀJ_i` then understates the variance of what
+the centres determine by the integrated autocorrelation `τ = 1 + 2 Σ_k ρ_k`. For the
+stripe and gauge groups (one residual per centre, in order along each line) the lag
+correlations `ρ_k` of the standardised residuals are estimated
+([`residual_lag_correlation`][]: lags while `ρ_k` exceeds `max(0.05, 3/√n)`) and the
+meat becomes `σ²_g Σ_i Σ_j ρ_|i−j| √(a_i a_j) J_iᵀJ_j` (a banded residual covariance).
+Measured on rendered colour-JPEG captures (tessar ×1, `detect --scan`, 36 frames, 56667
+gauge centres): gauge residuals ρ₁ = 0.88, ρ₂ = 0.63; the error of a second ring's radius
+from exact pixels was +0.086 µm against U = 0.057 µm (k = 2) with independent centres.
+Simulated observations (independent noise) give `ρ_k` under the threshold: unchanged.
 """
 
 from __future__ import annotations
@@ -42,13 +55,22 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["GroupCovariance", "group_covariance", "pixel_noise_gains", "sandwich_covariance"]
+__all__ = [
+    "GroupCovariance",
+    "group_covariance",
+    "pixel_noise_gains",
+    "residual_lag_correlation",
+    "sandwich_covariance",
+]
 
 # Residual blocks of the joint problems, in the order `joint_residuals` concatenates them.
 GROUPS = ("corners", "stripes", "gauge", "table target", "table stripes")
 # A group with fewer redundant observations than this gets no variance factor of its own
 # (it keeps the pooled one).
 MIN_REDUNDANCY = 10.0
+# Groups whose residuals are one per stripe centre, in order along each line.
+ORDERED_GROUPS = ("stripes", "gauge", "table stripes")
+MAX_LAG = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +85,8 @@ class GroupCovariance:
     - `pooled`: the single s² of `diagnostics`.
     - `weighting`: `"pixels"` (`variance_factors` are pixel noise variances, px²) or
       `"groups"` (relative to the σ the calibration assumed).
+    - `correlation_time`: `{group: τ_g}`, `τ = 1 + 2 Σ_k ρ_k` of the groups whose
+      neighbouring residuals correlate (absent: taken as independent).
     """
 
     covariance: np.ndarray
@@ -71,6 +95,7 @@ class GroupCovariance:
     n_residuals: dict
     pooled: float
     weighting: str = "groups"
+    correlation_time: dict = dataclasses.field(default_factory=dict)
 
 
 def _group_sizes(cal, params) -> list[int]:
@@ -126,14 +151,57 @@ def group_covariance(
     if weighting not in ("pixels", "groups"):
         raise ValueError(f"weighting must be 'pixels' or 'groups', got {weighting!r}")
     gains = pixel_noise_gains(fn, params, cal.data) if weighting == "pixels" else None
-    cov, factors, redund, counts, pooled = sandwich_covariance(
-        J, r, sizes, rtol=rtol, gains=gains
-    )
     names = GROUPS[: len(sizes)]
+    bounds = np.cumsum([0] + list(sizes))
+    a = np.ones(len(r)) if gains is None else gains
+    rho = [
+        residual_lag_correlation(r[lo:hi], a[lo:hi], J[lo:hi]) if name in ORDERED_GROUPS
+        else np.zeros(0)
+        for name, lo, hi in zip(names, bounds[:-1], bounds[1:])
+    ]  # fmt: skip
+    cov, factors, redund, counts, pooled = sandwich_covariance(
+        J, r, sizes, rtol=rtol, gains=gains, correlations=rho
+    )
+    tau = {n: 1.0 + 2.0 * float(np.sum(c)) for n, c in zip(names, rho) if len(c)}
     return GroupCovariance(
         cov, dict(zip(names, factors)), dict(zip(names, redund)), dict(zip(names, counts)),
-        pooled, weighting,
+        pooled, weighting, tau,
     )
+
+
+def residual_lag_correlation(r, gains=None, J=None, *, max_lag: int = MAX_LAG) -> np.ndarray:
+    """Lag correlations `ρ_1, ρ_2, …` of residuals that come in order along lines.
+
+    The residuals are standardised by their gains (`r_i / √a_i`); rows that are not
+    observations (zero residual and zero Jacobian row, or zero gain: padding) break the
+    lines, so pairs across them do not count. Lags are kept from 1 while `ρ_k` exceeds
+    `max(0.05, 3/√n)` (n observations; for independent noise `ρ_k` scatters by `1/√n`),
+    at most `max_lag`.
+
+    **Returns:** `(K,)`, empty when neighbouring residuals do not correlate.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    a = np.ones(len(r)) if gains is None else np.asarray(gains, dtype=np.float64)
+    used = (r != 0) if J is None else (np.any(np.asarray(J) != 0, axis=1) | (r != 0))
+    used &= a > 0
+    n = int(used.sum())
+    if n < 10:
+        return np.zeros(0)
+    z = np.where(used, r / np.sqrt(np.where(used, a, 1.0)), 0.0)
+    var = float(np.sum(z * z)) / n
+    if var <= 0:
+        return np.zeros(0)
+    limit = max(0.05, 3.0 / np.sqrt(n))
+    out = []
+    for k in range(1, min(max_lag, n - 1) + 1):
+        pair = used[:-k] & used[k:]
+        if not pair.any():
+            break
+        rho = float(np.sum((z[:-k] * z[k:])[pair])) / pair.sum() / var
+        if not rho > limit:
+            break
+        out.append(rho)
+    return np.asarray(out)
 
 
 def pixel_noise_gains(fn, params, data) -> np.ndarray:
@@ -172,7 +240,7 @@ def pixel_noise_gains(fn, params, data) -> np.ndarray:
     return np.asarray(gains(params, data), dtype=np.float64)
 
 
-def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None):
+def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None, correlations=None):
     """`(Σ, s²_g list, redundancies, counts, pooled s²)` of a weighted least-squares
     optimum with Jacobian `J` `(n, p)` and residuals `r` `(n,)` whose rows come in
     consecutive groups of `sizes`, each group with its own variance factor (module text).
@@ -185,6 +253,10 @@ def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None):
     Σ_{i∈g, j} h_ij² a_j/a_i)` (one step, the other groups' factors taken equal; with
     `a ≡ 1` the denominator is `n_g − tr H_gg`), and the meat is `Σ_i s²_g a_i J_iᵀJ_i`.
     Rows with `a_i = 0` carry no noise and count in neither.
+
+    `correlations` (optional): per group the lag correlations `ρ_1 … ρ_K` of its
+    standardised noise along its rows ([`residual_lag_correlation`][]; empty: independent);
+    the meat of that group is then `s²_g Σ_{|i−j|≤K} ρ_|i−j| √(a_i a_j) J_iᵀJ_j`.
 
     **Raises:** `ValueError` when there are no more observations than parameters.
     """
@@ -213,7 +285,11 @@ def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None):
     US = U * s  # J d = U S Vᵀ, so group g's rows of J d are (U S)_g Vᵀ
     B = np.zeros((len(s), len(s)))
     factors, redund, counts = [], [], []
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
+    if correlations is None:
+        correlations = [()] * len(sizes)
+    if len(correlations) != len(sizes):
+        raise ValueError("correlations must give one sequence per group")
+    for (lo, hi), rho in zip(zip(bounds[:-1], bounds[1:]), correlations):
         m = used[lo:hi]
         Ug = U[lo:hi] * np.sqrt(inv_a[lo:hi])[:, None]
         red = float(np.sum(1.0 - 2.0 * h[lo:hi][m]) + np.sum((Ug.T @ Ug) * UaU))
@@ -222,8 +298,14 @@ def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None):
         factors.append(s2)
         redund.append(red)
         counts.append(int(m.sum()))
-        A = US[lo:hi][m] * np.sqrt(a[lo:hi][m])[:, None]
-        B += s2 * (A.T @ A)
+        A = US[lo:hi] * np.where(m, np.sqrt(a_used[lo:hi]), 0.0)[:, None]
+        meat = A.T @ A
+        for k, rho_k in enumerate(np.asarray(rho, dtype=np.float64), start=1):
+            if k >= len(A):
+                break
+            cross = A[:-k].T @ A[k:]
+            meat += rho_k * (cross + cross.T)
+        B += s2 * meat
     # (JᵀJ)⁺ = d V S⁻² Vᵀ d, so the sandwich is d V S⁻² B S⁻² Vᵀ d
     inv2 = 1.0 / s**2
     cov = d[:, None] * (Vt.T @ ((inv2[:, None] * B) * inv2[None, :]) @ Vt) * d[None, :]

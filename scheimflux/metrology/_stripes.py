@@ -134,7 +134,11 @@ def _calibration_covariance(cal, diag, how):
         raise ValueError("calibration_covariance does not match the calibration's parameters")
     if how.weighting == "pixels":
         noise = ", ".join(f"{g} {np.sqrt(v):.3g} px" for g, v in how.variance_factors.items())
-        return how.covariance, f"pixel noise from the residuals: {noise}"
+        tau = getattr(how, "correlation_time", {}) or {}
+        corr = ", ".join(f"{g} x{t:.3g}" for g, t in tau.items())
+        return how.covariance, f"pixel noise from the residuals: {noise}" + (
+            f"; neighbouring centres correlate, variance {corr}" if corr else ""
+        )
     factors = ", ".join(f"{g} {v:.3g}" for g, v in how.variance_factors.items())
     return how.covariance, f"variance factors {factors}"
 
