@@ -132,6 +132,33 @@ def _uncertainty(cal):
     return fit_diagnostics(cal)
 
 
+def _joint_plane_sigma(diag) -> str:
+    """`"; with them (this solve): sigma of the normal … urad, of the offset … um"` from the
+    solve's covariance of `plane.n` (n = unit normal / distance), or `""` without it."""
+    import math
+
+    import numpy as np
+
+    if diag is None:
+        return ""
+    idx = diag.select("plane.n")
+    if len(idx) != 3:
+        return ""
+    n = np.asarray(diag.values, dtype=np.float64)[idx]
+    C = np.asarray(diag.covariance, dtype=np.float64)[np.ix_(idx, idx)]
+    norm = float(np.linalg.norm(n))
+    if not (np.all(np.isfinite(C)) and norm > 0):
+        return ""
+    u = n / norm
+    P = np.eye(3) - np.outer(u, u)  # a change of n across u turns the normal by dn / |n|
+    turn = np.sqrt(np.clip(np.linalg.eigvalsh(P @ C @ P)[1:], 0.0, None)) / norm
+    offset = math.sqrt(max(float(u @ C @ u), 0.0)) / norm**2  # distance 1 / |n|
+    return (
+        f"; with them (this solve's covariance): sigma of the normal "
+        f"{turn[1] * 1e6:.3g} / {turn[0] * 1e6:.3g} urad, of the offset {offset * 1e3:.3g} um"
+    )
+
+
 def trust_entries(cal) -> dict:
     """The calibration file's `uncertainty` and `quality` entries (its diagnostics section).
 
@@ -182,9 +209,10 @@ def format_trust(cal) -> str:
             w, s = p["normal_sigma_rad"]
             parts.append(
                 f"laser plane from {p['n_points']} stripe points on {p['n_views']} boards: "
-                f"spread across the line {p['spread_across_line_mm']:.3g} mm; predicted "
-                f"sigma of the normal {w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
-                f"{p['offset_sigma_mm'] * 1e3:.3g} um"
+                f"spread across the line {p['spread_across_line_mm']:.3g} mm; their noise "
+                f"alone (camera and board poses exact) would leave sigma of the normal "
+                f"{w * 1e6:.3g} / {s * 1e6:.3g} urad, of the offset "
+                f"{p['offset_sigma_mm'] * 1e3:.3g} um" + _joint_plane_sigma(diag)
             )
     axis = calibration_axis_conditioning(cal)
     if axis is not None:
