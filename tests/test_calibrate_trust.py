@@ -386,3 +386,24 @@ def test_a_line_whose_board_motion_was_not_measured_is_named(scene, clean):
     assert said[0] in cal.quality.summary()
     # without a recorded motion nothing is said
     assert not any("could not be measured" in w for w in clean.quality.warnings)
+
+
+def test_a_square_size_typed_10x_off_is_named(scene, clean):
+    # Pixel rays do not fix the scene's scale: with every board point 10x (a square size
+    # typed 10x off) the boards are placed 10x farther and every gate passes (the x0.5
+    # achromat world: the boards at 3 m, where f = 100 mm at |beta| = 0.5 focuses at
+    # 0.3 m, every length 10x). The nominal f and magnification say where the object is:
+    # the calibration names the mismatch. Ray-traced corners and lines.
+    obs = scene[0]
+    wrong = dataclasses.replace(obs, board_points_mm=10.0 * np.asarray(obs.board_points_mm))
+    cal = calibrate(wrong, distortion="none")
+    assert cal.quality.passed  # nothing else tells
+    said = [w for w in cal.quality.warnings if "--square-mm" in w]
+    assert len(said) == 1, cal.quality.warnings
+    # 10x, to the thin-lens distance f (1 + 1/|beta|) against the camera frame's origin
+    # (here 0.96 of it at the right size)
+    ratio = float(re.search(r"mm from the lens, ([0-9.]+)x the", said[0]).group(1))
+    assert 8.0 < ratio < 12.0
+    assert said[0] in cal.quality.summary()
+    # the right size: the boards where the nominal lens images, nothing said
+    assert not any("--square-mm" in w for w in clean.quality.warnings)

@@ -300,6 +300,66 @@ def test_cli_reconstruct_from_a_folder_of_frames(tmp_path, capsys):
     assert "no image files" in capsys.readouterr().err and not (tmp_path / "c.ply").exists()
 
 
+def test_cli_refuses_a_gap_in_the_frame_numbers_in_the_measurement_frame(tmp_path, capsys):
+    # Frame i is the i-th image and is turned by i x delta omega. A scan folder with
+    # f3.png lost (or a stray copy f0_copy.png) put every later frame at the wrong table
+    # angle, silently: exit 0 and points 15 deg off. Now: one line naming the problem,
+    # exit 1, nothing written; the camera frame (no angles) warns and goes on.
+    import cv2
+
+    from scheimflux.io._calibration import stage_to_dict
+    from scheimflux.simulate._render_stripe import render_stripe
+
+    _cal(tmp_path)
+    cal = json.loads((tmp_path / "cal.json").read_text())
+    cal["stage"] = stage_to_dict(sf.paper_stage(0.5))
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    cal = str(tmp_path / "cal.json")
+    whole, gap, stray = (tmp_path / n for n in ("whole", "gap", "stray"))
+    for folder in (whole, gap, stray):
+        folder.mkdir()
+        for i in range(6):
+            img, _ = render_stripe((240, 320), lambda u, i=i: 100.0 + 0.1 * u + 9 * i, seed=i)
+            cv2.imwrite(str(folder / f"f{i}.png"), img)
+    (gap / "f3.png").unlink()
+    (stray / "f0_copy.png").write_bytes((stray / "f0.png").read_bytes())
+    (stray / "notes.txt").write_text("not an image: ignored")
+    (whole / "notes.txt").write_text("not an image: ignored")
+    argv = ["reconstruct", cal, "--frame", "measurement", "--out"]
+    assert main([*argv, str(tmp_path / "w.npy"), str(whole)]) == 0
+    assert np.load(tmp_path / "w.npy").shape[0] == 6
+    capsys.readouterr()
+    for folder, said in ((gap, "missing between f0.png and f5.png: 3"), (stray, "f0_copy.png")):
+        before = sorted(os.listdir(tmp_path))
+        assert main([*argv, str(tmp_path / "p.npy"), str(folder)]) == 1
+        err = capsys.readouterr().err
+        assert said in err and "wrong table angle" in err and len(err.strip().splitlines()) == 1
+        assert sorted(os.listdir(tmp_path)) == before
+    argv = ["reconstruct", cal, str(gap), "--out", str(tmp_path / "c.npy")]
+    assert main(argv) == 0
+    assert "missing between f0.png and f5.png: 3" in capsys.readouterr().err
+    # detect --scan: refused before any board image is read
+    argv = ["detect", str(tmp_path / "whole"), "--board", "9x6", "--square-mm", "1",
+            "--scan", str(gap), "--delta-omega-deg", "15", "--gauge-radius-mm", "12"]
+    assert main([*argv, "--out", str(tmp_path / "obs.json")]) == 1
+    err = capsys.readouterr().err
+    assert "missing between f0.png and f5.png: 3" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "obs.json").exists()
+
+
+def test_frame_numbering_problem():
+    from scheimflux.stripe._folder import numbering_problem
+
+    assert numbering_problem([f"frame_{i}.tif" for i in range(24)]) is None
+    assert numbering_problem([f"frame_{i:03d}.tif" for i in range(1, 25)]) is None
+    assert numbering_problem(["a.png", "b.png", "c.png"]) is None
+    stamps = [f"img_{t}.png" for t in (224401, 224403, 224406, 224410)]  # time stamps
+    assert numbering_problem(stamps) is None
+    said = numbering_problem([f"f{i:03d}.png" for i in (1, 2, 5, 6, 7, 8, 9)] + ["f005.tif"])
+    assert "missing between f001.png and f009.png: 3, 4" in said
+    assert "f005.png and f005.tif" in said
+
+
 def test_cli_counts_pixels_outside_coverage_in_its_one_pass(tmp_path, capsys):
     # The count of stripe pixels outside the calibration's coverage comes from the
     # reconstruction's own pass, for a stripes file and a folder of frames alike (a folder

@@ -1,6 +1,7 @@
 """`scheimflux report`: a self-contained HTML page whose every image decodes."""
 
 import base64
+import html
 import json
 import os
 import sys
@@ -98,3 +99,39 @@ def test_report_without_matplotlib_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert rc == 1 and "matplotlib" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r.html").exists()
+
+
+def test_report_of_a_file_written_by_calibrate_shows_its_sigmas_and_warnings(tmp_path, capsys):
+    # `calibrate` keeps sigma, the correlation and the identifiability warnings under
+    # diagnostics.uncertainty and the quality warnings under diagnostics.quality; the
+    # report read them from diagnostics itself, so on every real file each free
+    # parameter showed "fixed / not given", no correlation and "No identifiability
+    # warning". Ray-traced observations, the file as the CLI writes it.
+    import dataclasses
+
+    from scheimflux.io import write_observations
+    from scheimflux.simulate import paper_rig, simulate_observations
+    from scheimflux.targets import Checkerboard
+
+    obs, _ = simulate_observations(
+        paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=4, stage_scan=False, seed=0
+    )
+    views = [dataclasses.replace(v, board_motion_px=float("nan") if i == 1 else 0.01)
+             for i, v in enumerate(obs.views)]  # fmt: skip
+    write_observations(tmp_path / "obs.json", dataclasses.replace(obs, views=views))
+    cal, out = tmp_path / "cal.json", str(tmp_path / "report.html")
+    argv = ["calibrate", str(tmp_path / "obs.json"), "--distortion", "none", "--out", str(cal)]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert main(["report", str(cal), "--out", out]) == 0, capsys.readouterr().err
+    doc = json.loads(cal.read_text())["diagnostics"]
+    with open(out, encoding="utf-8") as fh:
+        text = fh.read()
+    std = doc["uncertainty"]["std"]
+    for name in ("e", "z0", "x0", "y0"):
+        row = text.split(f"<td>{name}</td>", 1)[1].split("</tr>", 1)[0]
+        assert "fixed" not in row and f"{std['camera.' + name]:.9g}" in row, row
+    assert "f</td><td>97</td><td>fixed / not given" in text  # held, rightly
+    assert "correlation matrix" in text and "holds no correlation matrix" not in text
+    for w in doc["uncertainty"]["warnings"] + doc["quality"]["warnings"]:
+        assert html.escape(w) in text, w
+    assert any("could not be measured" in w for w in doc["quality"]["warnings"])

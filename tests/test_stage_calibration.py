@@ -184,3 +184,29 @@ def test_degenerate_scans_raise(rig, camera, plane, obs):
     # no stage scan
     with pytest.raises(ValueError, match="no rotary-stage scan"):
         calibrate_stage(camera, plane, dataclasses.replace(obs, stage=None))
+
+
+def test_points_at_the_wrong_scale_are_said_to_fit_no_cylinder_not_a_straight_stripe():
+    # A user's square size 10x too large scales every calibrated point, the gauge's
+    # included, by 10: at x0.5 (achromat, 12 mm gauge, a well curved stripe) the error
+    # said "the stripe is straight ... tilt the table axis out of the laser plane", a
+    # hardware remedy for a typing mistake. Ray-traced scan; the mistake is the laser
+    # plane 10x farther (n / 10), which scales each back-projected point by 10 exactly.
+    from scheimflux.simulate._lens import load_lens
+    from scheimflux.simulate._rig import build_rig
+
+    rig = build_rig(load_lens("achromat"), 0.5, refine=False)
+    camera = ThickLensScheimpflug(**rig.nominal_thick_lens_params())
+    plane = LaserPlane(jnp.asarray(rig.laser_plane))
+    stage = default_stage(rig, 12.0, math.radians(15.0))
+    scan = gauge_scan(rig, stage, 12.0, 24, eccentricity_mm=(0.05, -0.03), noise_px=0.05)
+    obs = _obs(rig, [f.px for f in scan.frames], 15.0)
+    obs = dataclasses.replace(obs, stage=dataclasses.replace(obs.stage, gauge_radius_mm=12.0))
+    # the right scale fits: 0.05 px is 0.44 um on the object here, far below the
+    # refusal's median of 1e-3 of the radius (12 um)
+    init = initial_stage(camera, plane, obs)
+    assert init.rms_mm < 12e-3 / 4
+    with pytest.raises(ValueError, match=r"no cylinder of the gauge radius \(12 mm\)") as e:
+        initial_stage(camera, LaserPlane(plane.n / 10.0), obs)
+    said = str(e.value)
+    assert "square size" in said and "is straight" not in said and "Tilt" not in said

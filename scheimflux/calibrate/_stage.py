@@ -28,6 +28,7 @@ from ._plane import _laser_residuals_jit, _pad_pow2
 from ._solve import ONE_SHOT, Fit, NotConvergedError, free_spec, least_squares
 from ._stage_axis import (
     _fit_cylinder_axis,
+    _section_fits,
     _Sections,
     _stage_from_sections,
     _straight_line_ms,
@@ -133,6 +134,21 @@ def initial_stage(camera, plane: LaserPlane, obs: Observations) -> StageInit:
     # The axis comes from the stripe's curvature: it must stand out of the noise, i.e. a
     # straight line per frame must fit far worse than the sections.
     line_ms = _straight_line_ms(sec)
+    typical = float(np.median(np.abs(_section_fits(sec, d[None])[1][0])))
+    if typical > 1e-3 * radius:
+        # Not a straight stripe (it fits the cylinder of its axis, to the noise): most
+        # points lie far from every cylinder of this radius, so the points' scale or the
+        # radius is wrong (a square size 10x off gave "the stripe is straight" at 2.7 mm
+        # RMS from the cylinder and 5.6 mm from a line). The median: a few stray points
+        # are no reason.
+        raise ValueError(
+            f"no cylinder of the gauge radius ({radius:g} mm) fits the gauge scan: its "
+            f"stripe points lie a median {typical:.3g} mm from the best one "
+            f"({typical / radius:.1%} of the radius; RMS {math.sqrt(max(score, 0.0)):.3g} "
+            f"mm, {math.sqrt(max(line_ms, 0.0)):.3g} mm from a straight line per frame). "
+            "Check the gauge radius (detect --gauge-radius-mm) and the board's square "
+            "size (detect --square-mm): it sets the scale of every point"
+        )
     if d @ sec.normal < math.sin(min_elevation) or line_ms < 100.0 * score:
         raise ValueError(
             "the gauge scan does not determine the table axis: the stripe is straight "

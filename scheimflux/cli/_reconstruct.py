@@ -97,7 +97,7 @@ def _folder_source(args):
     a tally of the frames that gave nothing."""
     import os
 
-    from ..stripe._folder import folder_stripe_frames, frame_files, read_image
+    from ..stripe._folder import folder_stripe_frames, frame_files, numbering_problem, read_image
     from ._common import warn
 
     if args.workers is not None and args.workers < 1:
@@ -106,6 +106,16 @@ def _folder_source(args):
         pairs = frame_files(args.stripes, args.laser_off)
     except ValueError as err:
         raise CLIError(str(err)) from None
+    numbering = numbering_problem([p for p, _ in pairs])
+    if numbering and args.frame == "measurement":
+        raise CLIError(
+            f"{args.stripes}: {numbering}. Frame i is the i-th image and is turned by "
+            "i x delta omega, so every frame after the gap or the odd image would be at a "
+            "wrong table angle: put the missing image back (an image without a line keeps "
+            "its place as an empty frame) or move the odd one out"
+        )
+    if numbering:
+        warn("reconstruct", f"{args.stripes}: {numbering} (frame i is the i-th image)")
     first = next((im for im in (read_image(p) for p, _ in pairs) if im is not None), None)
     if first is None:
         raise CLIError(f"none of the {len(pairs)} images in {args.stripes} could be read")

@@ -135,6 +135,13 @@ def _warnings(rep: Report, diag) -> None:
     rep.add("Identifiability", body)
 
 
+def _quality_warnings(rep: Report, quality) -> None:
+    warns = quality.get("warnings") if isinstance(quality, dict) else None
+    if warns:
+        rep.add("Quality warnings", "<ul>" + "".join(
+            f'<li class="warn">{html.escape(str(w))}</li>' for w in warns) + "</ul>")
+
+
 def _residuals(rep: Report, cal) -> None:
     if cal is None:
         rep.add("Residuals", "<p>Residual maps need the observations the calibration was "
@@ -312,10 +319,17 @@ def build_report(calibration: str, *, observations: str | None = None,
     with open(calibration, encoding="utf-8") as fh:
         doc = json.load(fh)
     diag = doc.get("diagnostics", {})
+    if not isinstance(diag, dict):
+        diag = {}
+    # `calibrate` keeps σ, the correlation and the identifiability warnings in
+    # diagnostics.uncertainty, the quality warnings in diagnostics.quality (the report
+    # read them from diagnostics itself: every free parameter showed "fixed / not given")
+    unc = diag.get("uncertainty") if isinstance(diag.get("uncertainty"), dict) else diag
     rep = Report(f"scheimflux calibration report: {os.path.basename(calibration)}")
-    _parameters(rep, doc, diag)
-    _correlation(rep, diag)
-    _warnings(rep, diag)
+    _parameters(rep, doc, unc)
+    _correlation(rep, unc)
+    _warnings(rep, unc)
+    _quality_warnings(rep, diag.get("quality"))
     _residuals(rep, cal)
     _coverage(rep, doc, cal)
     _model_error(rep, cal)

@@ -66,6 +66,55 @@ def frame_files(
     return pairs
 
 
+def numbering_problem(names: Sequence[str]) -> str | None:
+    """What is wrong with the numbering of a folder's frame files, or None.
+
+    Frame i is the i-th image in natural name order, so in a rotary-table scan a missing
+    file (`frame_5.tif` lost between `frame_4.tif` and `frame_6.tif`) or a stray image
+    (`frame_0_copy.tif`) turns every later frame by a wrong angle, without any sign in
+    the images themselves. Where most names are `PREFIX<N>.EXT` with one prefix, this
+    names the numbers missing from their run, numbers used twice and the images that do
+    not follow the pattern. Gaps count only in a counter (numbers mostly one apart, not
+    time stamps). Names without a common numbering give None (nothing to check).
+
+    **Arguments:** `names`: the frames' file names (or paths), laser-off images excluded.
+    """
+    stems = [os.path.splitext(os.path.basename(os.fspath(n)))[0] for n in names]
+    parsed = [re.fullmatch(r"(.*?)(\d+)", s) for s in stems]
+    prefixes = [m.group(1) for m in parsed if m]
+    if not prefixes:
+        return None
+    prefix = max(set(prefixes), key=prefixes.count)
+    numbered = {}  # number -> names
+    odd = []
+    for name, m in zip(names, parsed):
+        base = os.path.basename(os.fspath(name))
+        if m and m.group(1) == prefix:
+            numbered.setdefault(int(m.group(2)), []).append(base)
+        else:
+            odd.append(base)
+    if len(numbered) < 2 or 2 * sum(map(len, numbered.values())) < len(names):
+        return None
+    problems = []
+    nums = sorted(numbered)
+    missing = []  # a counter with lost files (not, e.g., time stamps: their steps vary)
+    if np.median(np.diff(nums)) == 1:
+        missing = sorted(set(range(nums[0], nums[-1] + 1)) - set(nums))
+    if missing:
+        shown = ", ".join(map(str, missing[:8])) + (", ..." if len(missing) > 8 else "")
+        first, last = numbered[nums[0]][0], numbered[nums[-1]][0]
+        problems.append(f"{len(missing)} frame number(s) missing between {first} and {last}: "
+                        f"{shown}")  # fmt: skip
+    twice = [" and ".join(v) for v in numbered.values() if len(v) > 1]
+    if twice:
+        problems.append("one number on two images: " + "; ".join(twice[:4]))
+    if odd:
+        shown = ", ".join(odd[:4]) + (", ..." if len(odd) > 4 else "")
+        problems.append(f"{len(odd)} image(s) not numbered like the others "
+                        f"({prefix}<N>): {shown}")  # fmt: skip
+    return "; ".join(problems) or None
+
+
 def read_image(path: str) -> np.ndarray | None:
     """The image as stored (grey (H, W) or BGR (H, W, 3); alpha dropped), or None when it
     cannot be read."""
