@@ -139,7 +139,6 @@ def test_uncertainty_of_every_free_parameter_is_reported(clean):
     assert f"{100 * clean.coverage.fraction:.0f} %" in d.summary()
 
 
-
 def test_plane_line_states_the_joint_sigma_beside_the_points_noise_alone(clean):
     """The summary's laser-plane line gave only the σ the stripe points' noise leaves with
     camera and board poses exact (0.003 µm offset on a tessar x1 capture, where the joint
@@ -240,6 +239,27 @@ def test_freeze_stage_parameters(tmp_path):
     assert "stage.T_m_c.rotvec[0]" not in cal.fits["joint"].labels
     with pytest.raises(ValueError, match="no rotary-stage scan"):
         calibrate(dataclasses.replace(obs, stage=None), freeze=freeze)
+
+
+@pytest.mark.slow
+def test_a_wrong_table_step_is_named_when_the_calibration_is_refused():
+    """A table step typed wrong (25° for 30°) was refused naming only what the joint solve
+    then lost (a null direction of plane, stage and boards, or a gate of the camera),
+    never the step. The stage solve, before the camera is moved, already leaves the gauge
+    scan far from its cylinder (7.5 µm against 0.14 µm with the right step; the gate is
+    3 σ): the refusal now says to check the step and the gauge radius first. With the
+    right step nothing is said. Ray-traced scene."""
+    rig = paper_rig(refine=False)
+    obs, _ = simulate_observations(
+        rig, Checkerboard(6, 5, 0.4), n_views=4, n_frames=12, delta_omega_deg=30.0, seed=1
+    )
+    cal = calibrate(obs, distortion="none")
+    assert not any("before the joint solve" in w for w in cal.quality.warnings)
+    wrong = dataclasses.replace(obs, stage=dataclasses.replace(obs.stage, delta_omega_deg=25.0))
+    with pytest.raises((RankDeficientError, QualityError)) as err:
+        calibrate(wrong, distortion="none")
+    said = str(err.value)
+    assert "--delta-omega-deg" in said and "(25 deg" in said and "--gauge-radius-mm" in said
 
 
 def test_free_spec_accepts_stage_paths():

@@ -26,12 +26,23 @@ from ._stage_warning import axis_warning, calibration_axis_conditioning
 
 
 def _gated(
-    cal: Calibration, rejected: dict, conditioning, throw: bool, notes: tuple[str, ...] = ()
+    cal: Calibration,
+    rejected: dict,
+    conditioning,
+    throw: bool,
+    notes: tuple[str, ...] = (),
+    hint: str | None = None,
 ) -> Calibration:
     """`cal` with its quality gates assessed and its coverage of the sensor recorded;
     `QualityError` (with `throw`) if a gate fails. `notes`: the solves' decisions and
-    findings (the pupil terms' test, the gauge profile's), added to the warnings."""
+    findings (the pupil terms' test, the gauge profile's), added to the warnings.
+    `hint`: what to check first, said (in the error and the warnings) only when a gate
+    fails."""
     quality = assess_quality(cal, rejected, conditioning)
+    if hint is not None and not quality.passed:
+        notes = (*notes, hint)
+    else:
+        hint = None
     if notes:
         quality = dataclasses.replace(quality, warnings=quality.warnings + tuple(notes))
     coverage = coverage_from_data(cal.data, cal.sensor_size)
@@ -42,7 +53,8 @@ def _gated(
     if throw and not quality.passed:
         raise QualityError(
             "calibration failed its quality gates: "
-            + "; ".join(g.message for g in quality.failures),
+            + "; ".join(g.message for g in quality.failures)
+            + ("" if hint is None else f"; {hint}"),
             cal,
         )
     return cal
