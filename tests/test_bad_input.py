@@ -418,3 +418,24 @@ def test_pose_from_matrix_refuses_non_rotations():
         sf.RotaryStage(np.ones((3, 3)), np.zeros(3), 0.1)
     R = np.asarray(sf.geometry.rotation_matrix(jnp.array([0.1, -0.2, 0.3])))
     np.testing.assert_allclose(Pose.from_matrix(R, np.zeros(3)).R, R, atol=1e-14)
+
+
+def test_a_folder_of_frames_given_as_a_stripes_file_says_how_to_make_one(tmp_path, capsys):
+    """`verify` and `measure` read a stripes file, `reconstruct` also a folder of frames:
+    a folder of frame images given to the former names `scheimflux extract`."""
+    import cv2
+
+    from scheimflux.io import iter_stripes, read_stripes
+
+    frames = tmp_path / "scan"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "frame_0.png"), np.zeros((8, 8), np.uint8))
+    for read in (read_stripes, lambda p: list(iter_stripes(p))):
+        with pytest.raises(ValueError, match="is a folder") as err:
+            read(str(frames))
+        assert f"scheimflux extract {frames} --out STRIPES.json" in str(err.value)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="is a folder") as err:
+        read_stripes(str(empty))
+    assert "extract" not in str(err.value)

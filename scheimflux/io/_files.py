@@ -31,13 +31,28 @@ from typing import Any
 TMP_PREFIX = ".tmp-"
 
 
+def folder_message(path: str, what: str) -> str:
+    """The error for a folder given where a `what` file was expected; for a stripes file
+    and a folder of images, also how to make one from them."""
+    msg = f"{path}: is a folder, not a {what} file"
+    if what == "stripes":
+        from ..capture._folder import IMAGE_SUFFIXES
+
+        if any(n.lower().endswith(IMAGE_SUFFIXES) for n in os.listdir(path)):
+            msg += (
+                f" (for its frame images, `scheimflux extract {path} --out STRIPES.json` "
+                "writes their stripe centres; `scheimflux reconstruct` also reads the folder)"
+            )
+    return msg
+
+
 def load_json(path: str | os.PathLike, what: str) -> Any:
     """Read a JSON file; errors name the file and what it should have been."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{what} file not found: {path}")
     if os.path.isdir(path):
-        raise ValueError(f"{path}: is a folder, not a {what} file")
+        raise ValueError(folder_message(path, what))
     try:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ._files import load_json, write_atomic
+from ._files import folder_message, load_json, write_atomic
 
 FORMAT = "scheimflux.stripes/1"
 
@@ -243,7 +243,7 @@ def iter_stripes(path: str | os.PathLike, *, block_size: int = 1 << 20) -> Itera
     if not os.path.exists(path):
         raise FileNotFoundError(f"stripes file not found: {path}")
     if os.path.isdir(path):
-        raise ValueError(f"{path}: is a folder, not a stripes file")
+        raise ValueError(folder_message(path, "stripes"))
     with open(path, encoding="utf-8") as fh:
         tok = _Tokens(fh, path, block_size)
         try:
