@@ -427,3 +427,28 @@ def test_a_square_size_typed_10x_off_is_named(scene, clean):
     assert said[0] in cal.quality.summary()
     # the right size: the boards where the nominal lens images, nothing said
     assert not any("--square-mm" in w for w in clean.quality.warnings)
+
+
+def test_correlated_neighbouring_centres_are_named(clean):
+    """Stripe centres extracted from images share their errors with their neighbours
+    (rendered colour JPEG: ρ₁ = 0.88 on the gauge); the calibration's σ assume
+    independent centres, so such residuals are named with √τ. AR(1) rows with ρ = 0.8
+    (τ = 1 + 2 Σ 0.8ᵏ = 9, estimated from 20 × 300 residuals to ~0.01 in ρ₁) are; white
+    rows and the ray-traced scene's own residuals (independent noise) are not."""
+    from scheimflux.calibrate._quality import correlated_centres_warning
+
+    rng = np.random.default_rng(4)
+    rows, n, rho = 20, 300, 0.8
+    e = rng.standard_normal((rows, n))
+    ar = np.empty_like(e)
+    ar[:, 0] = e[:, 0]
+    for k in range(1, n):
+        ar[:, k] = rho * ar[:, k - 1] + np.sqrt(1 - rho**2) * e[:, k]
+    used = np.ones((rows, n), bool)
+    used[:, -40:] = False  # padding
+    said = correlated_centres_warning([("gauge", ar, used)])
+    assert said is not None
+    m = re.search(r"gauge rho1 = ([\d.]+), tau = ([\d.]+)", said)
+    assert m and abs(float(m.group(1)) - rho) < 0.05 and 6 < float(m.group(2)) < 12, said
+    assert correlated_centres_warning([("gauge", e, used)]) is None
+    assert not any("share their errors" in w for w in clean.quality.warnings)

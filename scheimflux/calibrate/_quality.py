@@ -64,6 +64,47 @@ def _gated(
 WEAK_BOARD_ANGLE_DEG = 5.0
 
 
+# Neighbouring stripe centres whose errors correlate this much (τ = 1 + 2 Σ ρ_k, the
+# factor by which the variance of a mean of many neighbours exceeds the independent one)
+# are named: the calibration's σ assume independent centres.
+CORRELATION_TAU_WARN = 2.0
+
+
+def correlated_centres_warning(blocks) -> str | None:
+    """A warning when neighbouring centres along the laser lines share their errors.
+
+    `blocks`: `(name, residuals (rows, L), used (rows, L))`, each row one line's centres
+    in order (a view's board stripe, a gauge frame). Centres extracted from images are one
+    per scan line, each from a filter several pixels wide (and JPEG's 8 × 8 blocks): on
+    rendered colour-JPEG captures (tessar ×1) the gauge residuals had ρ₁ = 0.88, ρ₂ = 0.63,
+    and a second ring measured 3 σ off with independent centres. The covariance of
+    `diagnostics` (σ of the plane, the table axis and every parameter the lines
+    determine) counts them as independent; the budgets of `measure` and `verify` count
+    the correlation (`metrology._calcov`). Lag correlations as there
+    (`residual_lag_correlation`); simulated independent noise stays below them."""
+    from ..metrology._calcov import residual_lag_correlation
+
+    parts, worst = [], 1.0
+    for name, r, used in blocks:
+        used = np.asarray(used, bool)
+        if not used.any():
+            continue
+        z = np.where(used, np.asarray(r, np.float64), 0.0)
+        rho = residual_lag_correlation(np.pad(z, ((0, 0), (0, 1))).reshape(-1))
+        tau = 1.0 + 2.0 * float(np.sum(rho))
+        if tau >= CORRELATION_TAU_WARN:
+            parts.append(f"{name} rho1 = {rho[0]:.2f}, tau = {tau:.3g}")
+            worst = max(worst, tau)
+    if not parts:
+        return None
+    return (
+        f"neighbouring stripe centres share their errors ({'; '.join(parts)}): the σ of "
+        "this calibration (laser plane, table axis, every parameter the lines determine) "
+        f"count them as independent and can be up to {np.sqrt(worst):.2g}x (sqrt tau) too "
+        "small; the uncertainty budgets of measure and verify include the correlation"
+    )
+
+
 def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) -> Quality:
     """The quality gates of a calibration (see `scheimflux.calibrate._gates`)."""
     params, data = cal.params, cal.data
@@ -123,6 +164,11 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 "axis (wrong gauge radius, or Δω)",
             )
         )
+    note = correlated_centres_warning(
+        [("board stripes", stripe, sw), ("gauge", gauge, gw)] if params.plane is not None else []
+    )
+    if note is not None:
+        warnings.append(note)
     note = axis_warning(calibration_axis_conditioning(cal))
     if note is not None:
         warnings.append(note)
