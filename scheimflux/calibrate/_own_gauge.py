@@ -120,7 +120,7 @@ def _stripe_samples(g: np.ndarray) -> np.ndarray:
 def own_gauge_message(cal, matched: list[int], n_frames: int) -> str:
     """One line: which frames are the calibration's gauge scan, and what that means."""
     r = float(np.asarray(cal.data.gauge_radius))
-    shown = ", ".join(str(i) for i in matched[:8]) + (", ..." if len(matched) > 8 else "")
+    shown = _shown(matched)
     return (
         f"{len(matched)} of {n_frames} frame(s) ({shown}) are frames of the calibration's "
         f"own ring-gauge scan (within {MATCH_PX} px of its stripes): its radius "
@@ -132,9 +132,14 @@ def own_gauge_message(cal, matched: list[int], n_frames: int) -> str:
 def few_gauge_frames_message(matched: list[int], n_frames: int) -> str:
     """One line for a scan of which a few frames (not [`is_own_gauge_scan`][]) lie on the
     stripes of the calibration's gauge scan."""
-    shown = ", ".join(str(i) for i in matched[:8]) + (", ..." if len(matched) > 8 else "")
+    shown = _shown(matched)
     return (
         f"{len(matched)} of {n_frames} frame(s) ({shown}) lie within {MATCH_PX} px of "
         "stripes of the calibration's own ring-gauge scan; the other frames do not, so "
         "the scan is measured as another artefact"
     )
+
+
+def _shown(matched: list[int]) -> str:
+    """The first frame numbers of `matched`, for a message."""
+    return ", ".join(str(i) for i in matched[:8]) + (", ..." if len(matched) > 8 else "")

@@ -178,20 +178,14 @@ def _check_args(args) -> None:
             raise CLIError("--scan needs --delta-omega-deg and --gauge-radius-mm")
         if not os.path.isdir(args.scan):
             raise CLIError(f"--scan {args.scan} is not a folder")
-        from ..capture._folder import IMAGE_SUFFIXES
-        from ..stripe._folder import numbering_problem
+        from ..stripe._folder import frame_files, numbering_problem, numbering_refusal
 
-        numbering = numbering_problem(
-            [n for n in os.listdir(args.scan) if n.lower().endswith(IMAGE_SUFFIXES)
-             and os.path.isfile(os.path.join(args.scan, n))]
-        )  # fmt: skip
+        try:
+            numbering = numbering_problem([p for p, _ in frame_files(args.scan)])
+        except ValueError as err:  # no image in it
+            raise CLIError(f"--scan: {err}") from None
         if numbering:
-            raise CLIError(
-                f"--scan {args.scan}: {numbering}. Frame i is the i-th image and is turned "
-                "by i x --delta-omega-deg, so every frame after the gap or the odd image "
-                "would be at a wrong table angle: put the missing image back (an image "
-                "without a line keeps its place as an empty frame) or move the odd one out"
-            )
+            raise CLIError("--scan " + numbering_refusal(args.scan, numbering, "--delta-omega-deg"))
     elif args.gauge_radius_mm is not None:
         raise CLIError("--gauge-radius-mm needs --scan SCAN_DIR")
     if args.stage_target is not None:

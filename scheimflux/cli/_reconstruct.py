@@ -97,7 +97,13 @@ def _folder_source(args):
     a tally of the frames that gave nothing."""
     import os
 
-    from ..stripe._folder import folder_stripe_frames, frame_files, numbering_problem, read_image
+    from ..stripe._folder import (
+        folder_stripe_frames,
+        frame_files,
+        numbering_problem,
+        numbering_refusal,
+        read_image,
+    )
     from ._common import warn
 
     if args.workers is not None and args.workers < 1:
@@ -108,12 +114,7 @@ def _folder_source(args):
         raise CLIError(str(err)) from None
     numbering = numbering_problem([p for p, _ in pairs])
     if numbering and args.frame == "measurement":
-        raise CLIError(
-            f"{args.stripes}: {numbering}. Frame i is the i-th image and is turned by "
-            "i x delta omega, so every frame after the gap or the odd image would be at a "
-            "wrong table angle: put the missing image back (an image without a line keeps "
-            "its place as an empty frame) or move the odd one out"
-        )
+        raise CLIError(numbering_refusal(args.stripes, numbering, "delta omega"))
     if numbering:
         warn("reconstruct", f"{args.stripes}: {numbering} (frame i is the i-th image)")
     first = next((im for im in (read_image(p) for p, _ in pairs) if im is not None), None)

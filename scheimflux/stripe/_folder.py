@@ -115,6 +115,17 @@ def numbering_problem(names: Sequence[str]) -> str | None:
     return "; ".join(problems) or None
 
 
+def numbering_refusal(folder: str, problem: str, step: str) -> str:
+    """The one-line refusal of a rotary-table scan folder with a `numbering_problem`;
+    `step` names the table step (the option that sets it)."""
+    return (
+        f"{folder}: {problem}. Frame i is the i-th image and is turned by i x {step}, so "
+        "every frame after the gap or the odd image would be at a wrong table angle: put "
+        "the missing image back (an image without a line keeps its place as an empty "
+        "frame) or move the odd one out"
+    )
+
+
 def read_image(path: str) -> np.ndarray | None:
     """The image as stored (grey (H, W) or BGR (H, W, 3); alpha dropped), or None when it
     cannot be read."""
