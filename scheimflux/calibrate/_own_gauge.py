@@ -27,13 +27,19 @@ stripe to the pixels' precision, yet the scan as a whole measures the moved gaug
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 MATCH_PX = 0.5
 MATCH_FRACTION = 0.8
 GAP_FACTOR = 4.0
 OWN_SCAN_FRACTION = 0.5
-_STEP_PX = 0.1  # sampling of the joined stripe: matches within MATCH_PX of it to 0.003 px
+# The joined stripe is sampled every _STEP_PX; a pixel within MATCH_PX of the stripe is
+# within _RADIUS_PX of a sample (half a step along it), and one matched at _RADIUS_PX is
+# at most that far from the stripe.
+_STEP_PX = 0.25
+_RADIUS_PX = float(np.hypot(MATCH_PX, _STEP_PX / 2))
 
 
 def gauge_scan_pixels(cal) -> list[np.ndarray] | None:
@@ -72,13 +78,16 @@ def frames_on_calibration_gauge(cal, uv, frame_index=None) -> list[int] | None:
         return []
     lines = [_stripe_samples(g) for g in gauge]
     label = np.concatenate([np.full(len(s), j) for j, s in enumerate(lines)])
-    near = cKDTree(np.concatenate(lines)).query_ball_point(uv, MATCH_PX)
+    near = cKDTree(np.concatenate(lines)).query_ball_point(uv, _RADIUS_PX)
+    counts = np.fromiter(map(len, near), np.int64, len(near))
+    sample = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(counts.sum()))
+    # each (pixel, gauge frame) pair once, however many of that frame's samples are near
+    pair = np.unique(np.repeat(np.arange(len(uv)), counts) * len(gauge) + label[sample])
+    pixel, frame_of = np.divmod(pair, len(gauge))
     frames = np.unique(fi)
     row = np.searchsorted(frames, fi)
     hits = np.zeros((len(frames), len(gauge)), np.int64)  # pixels near each gauge frame
-    for r, idx in zip(row, near):
-        if idx:
-            hits[r, np.unique(label[idx])] += 1
+    np.add.at(hits, (row[pixel], frame_of), 1)
     size = np.bincount(row, minlength=len(frames))
     best = hits.max(axis=1)
     return [int(f) for f, b, n in zip(frames, best, size) if b >= MATCH_FRACTION * n]
