@@ -429,6 +429,25 @@ def axis_point_gate(x0: float, y0: float, width: int, height: int) -> Gate:
     return Gate("axis point", ok, out, 0.0, "px outside", msg)
 
 
+def sensor_side_gate(z0: float) -> Gate:
+    """The sensor must lie behind the lens (`z0 > 0`); value: `z0` (mm).
+
+    Planar boards and a laser plane cannot tell the camera from its mirror image through
+    the lens (sensor in front, e and the tilt negated, everything it sees behind it): the
+    same pixel rays. A solve that reached the mirror is refused here, with what to do,
+    rather than by the calibration file's schema."""
+    ok = bool(math.isfinite(z0) and z0 > 0)
+    msg = (
+        ""
+        if ok
+        else f"the solve reached the mirror image of the camera (z0 = {z0:.4g} mm: the "
+        "sensor in front of the lens, the boards behind it; planar targets cannot tell "
+        "the two apart): a wrong start; give the nominal focal length, magnification and "
+        "tilt (--focal-length-mm, --magnification, --tilt-deg)"
+    )
+    return Gate("sensor behind the lens", ok, z0, 0.0, "mm z0", msg)
+
+
 def tails_gate(name: str, r: np.ndarray) -> Gate:
     """Heavy tails of residuals `r` in units of their stated σ.
 

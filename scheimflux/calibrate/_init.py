@@ -256,8 +256,18 @@ def thick_lens_from_pinhole(pinhole: Pinhole, poses: Pose, obs, *, f=None):
                 throw=False,
                 max_steps=100,
             )
-            if best is None or fit.cost < best.cost:
+            # Planar boards cannot tell the camera from its mirror image through the lens
+            # (the world reflected in z: sensor in front of the lens, e and the tilt
+            # negated, the boards behind it): the same rays to rounding (measured: costs
+            # equal to 1e-13 relative on a circle-grid capture, and the start with
+            # z0 = -226 mm won by rounding). Only the physical one is a start.
+            if float(fit.params.camera.z0) > 0 and (best is None or fit.cost < best.cost):
                 best = fit
+    if best is None:
+        raise ValueError(
+            "the closed-form start found no camera with the sensor behind the lens; give "
+            "the nominal focal length, magnification and tilt (nominal initialisation)"
+        )
     conv = _normalise_tilt(best.params)
     Q = rotation_matrix(conv.rotvec)
     Rs = jax.vmap(rotation_matrix)(poses.rotvec)

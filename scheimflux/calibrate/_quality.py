@@ -18,6 +18,7 @@ from ._gates import (
     board_plane_angles_deg,
     fraction_gate,
     rms_gate,
+    sensor_side_gate,
     tails_gate,
 )
 from ._rejection import _block_residuals
@@ -175,6 +176,7 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
     cam = params.camera
     if isinstance(cam, (ThickLensScheimpflug, ThickLensNonCentral)):
         gates.append(axis_point_gate(float(cam.x0), float(cam.y0), W, H))
+        gates.append(sensor_side_gate(float(cam.z0)))
     elif isinstance(cam, Pinhole):
         g = axis_point_gate(float(cam.x0), float(cam.y0), W, H)
         if not g.passed:

@@ -327,7 +327,6 @@ def run(args) -> int:
         **trust_entries(cal),
     }
     doc = calibration_to_dict(cal, diagnostics=extra)
-    parse_calibration(doc)
     print(calibration_summary(cal, doc))
     print(f"total time: {total:.1f} s")
     failed = [
@@ -350,6 +349,10 @@ def run(args) -> int:
         )
     if refusals:
         raise CLIError("; ".join(refusals) + "; no file written")
+    try:  # what is written must read back (the file's schema)
+        parse_calibration(doc)
+    except ValueError as err:
+        raise CLIError(f"the calibration cannot be written: {err}; no file written") from None
     write_json(out, doc, overwrite=args.overwrite)
     if failed:
         print(f"warning: wrote an UNCONVERGED calibration ({', '.join(failed)})")
