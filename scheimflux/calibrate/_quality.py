@@ -81,8 +81,9 @@ def correlated_centres_warning(blocks, *, counted: bool = False) -> str | None:
     solve) the calibration's σ count the correlation ([`fit_diagnostics`][] raises its
     covariance to the sandwich with a banded residual covariance, as the budgets of
     `measure` and `verify`, `metrology._calcov`), and the warning says so; without it (a
-    sequential calibration) they count the centres as independent and it says by how
-    much they can be too small. Lag correlations as there (`residual_lag_correlation`);
+    sequential calibration, or where the joint solve's group covariance finds no lag)
+    they count the centres as independent and it says by how much they can be too
+    small. Lag correlations as there (`residual_lag_correlation`);
     simulated independent noise stays below them."""
     from ..metrology._calcov import residual_lag_correlation
 
@@ -174,11 +175,17 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 "axis (wrong gauge radius, or Δω)",
             )
         )
-    note = correlated_centres_warning(
-        [("board stripes", stripe, sw), ("gauge", gauge, gw)] if params.plane is not None else [],
-        counted="joint" in cal.fits,
-    )
+    lines = []
+    if params.plane is not None:
+        lines = [("board stripes", stripe, sw), ("gauge", gauge, gw)]
+    note = correlated_centres_warning(lines)
     if note is not None:
+        from ._uncertainty import correlated_groups
+
+        # the joint solve's σ count the correlation where its group covariance finds it
+        # (cached for fit_diagnostics, which states those σ)
+        if correlated_groups(cal) is not None:
+            note = correlated_centres_warning(lines, counted=True)
         warnings.append(note)
     note = axis_warning(calibration_axis_conditioning(cal))
     if note is not None:
