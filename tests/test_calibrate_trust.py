@@ -452,3 +452,52 @@ def test_correlated_neighbouring_centres_are_named(clean):
     assert m and abs(float(m.group(1)) - rho) < 0.05 and 6 < float(m.group(2)) < 12, said
     assert correlated_centres_warning([("gauge", e, used)]) is None
     assert not any("share their errors" in w for w in clean.quality.warnings)
+
+
+def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
+    """The calibration's σ count stripe centres that share their errors along their line
+    (tests/test_correlated_sigma.py has the known-answer and Monte Carlo checks). Here, on
+    the ray-traced scene: with its independent noise the covariance is the former
+    max(1, s²)(JᵀJ)⁺ bit for bit (the lag screen finds nothing, no Jacobian is built);
+    with AR(1) noise (ρ = 0.8) along each board stripe it is raised (never lowered in
+    any direction), the board stripes' τ is recorded (estimated from ~1800 residuals:
+    truncated at ρ_k < 0.07, about 8.5 for the 9 of the full sum, minus what the fit
+    absorbs), and the warning, the file and the summary say that the σ include it."""
+    from helpers import ar1_noise, former_fit_covariance
+
+    from scheimflux.calibrate import calibration_summary, trust_entries
+    from scheimflux.calibrate._uncertainty import correlated_groups
+
+    d = fit_diagnostics(clean)
+    assert d.correlation_time == {} and correlated_groups(clean) is None
+    assert np.array_equal(d.covariance, former_fit_covariance(clean.fits["joint"]))
+    assert "correlation_time" in d.to_dict() and not d.to_dict()["correlation_time"]
+
+    obs, truth = scene
+    rng = np.random.default_rng(3)
+    views = [
+        View(
+            c + 0.03 * rng.standard_normal(c.shape), s + 0.05 * ar1_noise(rng, s.shape[::-1], 0.8).T
+        )
+        for c, s in zip(truth.corners_px, truth.stripe_px)
+    ]
+    cal = calibrate(dataclasses.replace(obs, views=views), distortion="none")
+    d = fit_diagnostics(cal)
+    assert set(d.correlation_time) == {"stripes"}
+    assert 4.0 < d.correlation_time["stripes"] < 9.0, d.correlation_time
+    old = former_fit_covariance(cal.fits["joint"])
+    # Σ_new − Σ_old ⪰ 0: no linear function of the parameters (the parameters themselves,
+    # random combinations in units of their σ) has a smaller variance than before
+    g = np.vstack([np.eye(len(d.std)), np.random.default_rng(0).standard_normal((500, len(d.std)))])
+    g = g / np.sqrt(np.diag(old))
+    v_old, v_new = (np.einsum("ni,ij,nj->n", g, C, g) for C in (old, d.covariance))
+    assert np.all(v_new >= v_old * (1 - 1e-9)) and np.max(v_new / v_old) > 1.05
+    plane = d.select("plane.n")
+    assert np.all(d.std[plane] > np.sqrt(np.diag(old))[plane])
+    said = [w for w in cal.quality.warnings if "share their errors" in w]
+    assert len(said) == 1 and "counted in the σ of this calibration" in said[0]
+    assert "too small" not in said[0]
+    doc = trust_entries(cal)["uncertainty"]
+    assert doc["correlation_time"] == {"stripes": pytest.approx(d.correlation_time["stripes"])}
+    assert doc["std"]["plane.n[2]"] == pytest.approx(d.std_of("plane.n[2]"))
+    assert "σ count the correlation of neighbouring stripe centres" in calibration_summary(cal)

@@ -143,6 +143,9 @@ class Diagnostics:
     - `frozen`: the parameter paths held fixed.
     - `coverage`: fraction of the sensor covered by the calibration data
       (`Calibration.coverage`), None when unknown.
+    - `correlation_time`: `{group: τ}`, `τ = 1 + 2 Σ_k ρ_k`, of the residual groups
+      whose neighbouring stripe centres share their errors, where the covariance counts
+      that correlation ([`fit_diagnostics`][]); empty: counted as independent.
     """
 
     block: str
@@ -160,6 +163,7 @@ class Diagnostics:
     warnings: list[str]
     frozen: tuple = ()
     coverage: float | None = None
+    correlation_time: dict = dataclasses.field(default_factory=dict)
 
     def index(self, label: str) -> int:
         """Position of a parameter label (e.g. `"camera.z0"`, `"plane.n[2]"`)."""
@@ -199,6 +203,15 @@ class Diagnostics:
             if len(tra):
                 parts.append(f"σ(translation) median {np.median(self.std[tra]) * 1e3:.3g} µm")
             lines.append(", ".join(parts))
+        if self.correlation_time:
+            taus = ", ".join(
+                f"{'board stripes' if g == 'stripes' else g} tau = {t:.3g}"
+                for g, t in self.correlation_time.items()
+            )
+            lines.append(
+                f"  σ count the correlation of neighbouring stripe centres ({taus}; banded "
+                "residual covariance, as measure and verify)"
+            )
         if self.frozen:
             lines.append("  fixed: " + ", ".join(self.frozen))
         cov = "unknown" if self.coverage is None else f"{100 * self.coverage:.0f} %"
@@ -226,6 +239,7 @@ class Diagnostics:
             },
             "singular_values": [_num(v) for v in self.singular_values],
             "coverage_fraction": None if self.coverage is None else _num(self.coverage),
+            "correlation_time": {g: _num(t) for g, t in self.correlation_time.items()},
             "warnings": list(self.warnings),
         }
 

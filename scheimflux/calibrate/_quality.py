@@ -71,18 +71,21 @@ WEAK_BOARD_ANGLE_DEG = 5.0
 CORRELATION_TAU_WARN = 2.0
 
 
-def correlated_centres_warning(blocks) -> str | None:
+def correlated_centres_warning(blocks, *, counted: bool = False) -> str | None:
     """A warning when neighbouring centres along the laser lines share their errors.
 
     `blocks`: `(name, residuals (rows, L), used (rows, L))`, each row one line's centres
     in order (a view's board stripe, a gauge frame). Centres extracted from images are one
     per scan line, each from a filter several pixels wide (and JPEG's 8 × 8 blocks): on
     rendered colour-JPEG captures (tessar ×1) the gauge residuals had ρ₁ = 0.88, ρ₂ = 0.63,
-    and a second ring measured 3 σ off with independent centres. The covariance of
-    `diagnostics` (σ of the plane, the table axis and every parameter the lines
-    determine) counts them as independent; the budgets of `measure` and `verify` count
-    the correlation (`metrology._calcov`). Lag correlations as there
-    (`residual_lag_correlation`); simulated independent noise stays below them."""
+    and a second ring measured 3 σ off with independent centres. With `counted` (a joint
+    solve) the calibration's σ count the correlation ([`fit_diagnostics`][] raises its
+    covariance to the sandwich with a banded residual covariance, as the budgets of
+    `measure` and `verify`, `metrology._calcov`), and the warning says so; without it (a
+    sequential calibration, or where the joint solve's group covariance finds no lag)
+    they count the centres as independent and it says by how much they can be too
+    small. Lag correlations as there (`residual_lag_correlation`);
+    simulated independent noise stays below them."""
     from ..metrology._calcov import residual_lag_correlation
 
     parts, worst = [], 1.0
@@ -98,11 +101,19 @@ def correlated_centres_warning(blocks) -> str | None:
             worst = max(worst, tau)
     if not parts:
         return None
+    said = f"neighbouring stripe centres share their errors ({'; '.join(parts)})"
+    if counted:
+        return (
+            f"{said}: counted in the σ of this calibration (laser plane, table axis, every "
+            "parameter the lines determine; banded residual covariance, "
+            "diagnostics.uncertainty.correlation_time) and in the uncertainty budgets of "
+            "measure and verify"
+        )
     return (
-        f"neighbouring stripe centres share their errors ({'; '.join(parts)}): the σ of "
-        "this calibration (laser plane, table axis, every parameter the lines determine) "
-        f"count them as independent and can be up to {np.sqrt(worst):.2g}x (sqrt tau) too "
-        "small; the uncertainty budgets of measure and verify include the correlation"
+        f"{said}: the σ of this calibration (laser plane, table axis, every parameter the "
+        f"lines determine) count them as independent and can be up to {np.sqrt(worst):.2g}x "
+        "(sqrt tau) too small; the uncertainty budgets of measure and verify include the "
+        "correlation"
     )
 
 
@@ -165,10 +176,17 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 "axis (wrong gauge radius, or Δω)",
             )
         )
-    note = correlated_centres_warning(
-        [("board stripes", stripe, sw), ("gauge", gauge, gw)] if params.plane is not None else []
-    )
+    lines = []
+    if params.plane is not None:
+        lines = [("board stripes", stripe, sw), ("gauge", gauge, gw)]
+    note = correlated_centres_warning(lines)
     if note is not None:
+        from ._uncertainty import correlated_groups
+
+        # the joint solve's σ count the correlation where its group covariance finds it
+        # (cached for fit_diagnostics, which states those σ)
+        if correlated_groups(cal) is not None:
+            note = correlated_centres_warning(lines, counted=True)
         warnings.append(note)
     note = axis_warning(calibration_axis_conditioning(cal))
     if note is not None:

@@ -220,12 +220,31 @@ def _fit_covariance(fit) -> np.ndarray | None:
     return max(1.0, s2) * (d[:, None] * np.linalg.pinv(H * np.outer(d, d)) * d[None, :])
 
 
+def _with_correlated_centres(cal, cov: np.ndarray) -> np.ndarray:
+    """`cov` of the joint solve raised, as in `fit_diagnostics`, to the covariance that
+    counts the correlation of neighbouring stripe centres (gauge, board or table stripes),
+    wherever that is larger; `cov` itself where they are independent."""
+    from ._uncertainty import correlated_groups, raise_covariance
+
+    groups = correlated_groups(cal)
+    if groups is None or groups.covariance.shape != cov.shape:
+        return cov
+    # cov = T Tᵀ on its range (eigenvectors of its correlation matrix: unit-free)
+    s = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    s = np.where(s > 0, s, 1.0)
+    w, V = np.linalg.eigh(cov / np.outer(s, s))
+    keep = w > 1e-13 * max(float(w[-1]), 1e-300)
+    return raise_covariance(s[:, None] * V[:, keep] * np.sqrt(w[keep]), groups.covariance)
+
+
 def calibration_axis_conditioning(cal) -> AxisConditioning | None:
     """[`axis_conditioning`][] of a calibration's final solve that holds the stage.
 
-    The joint solve where there is one (camera, plane and stage uncertainty together),
-    else the separate stage solve (camera and plane held fixed there, so their share is
-    not included). None without a stage or a kept normal matrix.
+    The joint solve where there is one (camera, plane and stage uncertainty together;
+    with the correlation of neighbouring stripe centres counted where they share their
+    errors, as in `fit_diagnostics`), else the separate stage solve (camera and plane
+    held fixed there, so their share is not included). None without a stage or a kept
+    normal matrix.
     """
     fits = getattr(cal, "fits", {}) or {}
     fit = fits.get("joint", fits.get("stage"))
@@ -243,6 +262,8 @@ def calibration_axis_conditioning(cal) -> AxisConditioning | None:
         cov = _fit_covariance(fit)
     if cov is None:
         return None
+    if fit is fits.get("joint"):
+        cov = _with_correlated_centres(cal, cov)
     W, H = getattr(cal, "sensor_size", (0, 0))
     if not (W and H):
         return None

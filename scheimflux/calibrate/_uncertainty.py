@@ -5,7 +5,12 @@ solver already assembles ([`Fit`][]`.normal_matrix`: no extra compilation):
 
     Σ = s² (JᵀJ)⁺,   s² = |r|² / (n − p)
 
-on the column-scaled matrix, with s² floored at 1 (see [`fit_diagnostics`][]). A
+on the column-scaled matrix, with s² floored at 1 (see [`fit_diagnostics`][]). Where the
+stripe centres along a laser line share their errors (the lag correlations of the board-
+stripe, gauge or table-stripe residuals, `metrology._calcov.residual_lag_correlation`),
+that covariance counts them as independent; the stated one is then raised to the sandwich
+covariance that counts the correlation ([`metrology.group_covariance`][], as `measure`
+and `verify` use it) wherever that is larger ([`raise_covariance`][]). A
 reconstructed point's own σ is relative to the camera
 frame, whose placement (above all its depth along the optical axis, which e and z0
 share) the data determine poorly; but that placement moves every point alike and cancels
@@ -17,6 +22,7 @@ between two reconstructed points.
 from __future__ import annotations
 
 import math
+import weakref
 
 import equinox as eqx
 import jax
@@ -35,7 +41,7 @@ from ._covariance import (
 from ._result import Calibration
 from ._solve import RANK_RTOL, Fit, split
 
-__all__ = ["fit_diagnostics", "length_uncertainty", "point_uncertainty"]
+__all__ = ["fit_diagnostics", "length_uncertainty", "point_uncertainty", "raise_covariance"]
 
 
 def _final_fit(cal: Calibration) -> tuple[str, Fit]:
@@ -43,6 +49,87 @@ def _final_fit(cal: Calibration) -> tuple[str, Fit]:
         if name in cal.fits:
             return name, cal.fits[name]
     raise ValueError("the calibration holds no camera or joint solve")
+
+
+def raise_covariance(T: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """`A = T Tᵀ` raised to `B` wherever `B` is larger: `T U max(m, 1) Uᵀ Tᵀ`, with
+    `U m Uᵀ` the eigen-decomposition of `T⁺ B T⁺ᵀ` (the generalised eigenproblem of `B`
+    against `A`, on the range of `A`).
+
+    In each of the common principal directions the larger variance of the two is kept, so
+    the variance of every linear function of the parameters is at least its variance
+    under `A` and under `B` (restricted to the range of `A`: what `A` leaves out, the
+    non-identifiable directions, stays out). The result does not depend on the
+    parameters' units. Where `B ≤ A` it is `A` (to rounding), where `B ≥ A` it is `B`.
+
+    **Arguments:** `T` `(p, k)` of full column rank; `B` `(p, p)` symmetric.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    # in units of A's σ (rows) and with unit columns: the parameters' units (px, rad, mm,
+    # a gauge freedom held to 1e-7) span far more than the float64 pseudo-inverse keeps
+    s = np.linalg.norm(T, axis=1)
+    s = np.where(s > 0, s, 1.0)
+    c = np.linalg.norm(T, axis=0)
+    c = np.where(c > 0, c, 1.0)
+    Ti = np.linalg.pinv(T / s[:, None] / c[None, :]) / c[:, None]  # T⁺ in units of σ
+    M = Ti @ (B / np.outer(s, s)) @ Ti.T
+    m, U = np.linalg.eigh(0.5 * (M + M.T))
+    TU = T @ U
+    return (TU * np.maximum(m, 1.0)) @ TU.T
+
+
+# Correlation of the stripe centres along their lines, per joint solve (a calibration
+# with its quality gates added is a new object sharing the solve and its data):
+# `{id(fit): (weakref to fit, data, GroupCovariance or None)}`, so that the calibrate
+# command's gates, file and summary (each asks for it) build the Jacobian once.
+_CORRELATED: dict[int, tuple] = {}
+
+
+def correlated_groups(cal: Calibration):
+    """The joint solve's [`metrology.GroupCovariance`][] when the stripe centres along a
+    laser line share their errors, else None.
+
+    Screened first on the final residuals alone, as [`correlated_centres_warning`][]
+    does: the lag correlations ([`metrology.residual_lag_correlation`][], lags kept while
+    `ρ_k > max(0.05, 3/√n)`) of each group whose residuals come in order along the lines
+    (board stripes, gauge scan, table-target stripes). Independent noise (simulated
+    observations) keeps none there and costs no Jacobian. Where one does, the group
+    covariance (full Jacobian, each group's own pixel noise, the lags re-estimated from
+    the residuals standardised by their pixel gains) decides; None again if it finds no
+    lag. Calibrations without a joint solve or a laser plane: None.
+    """
+    from ..metrology._calcov import (
+        GROUPS,
+        ORDERED_GROUPS,
+        _group_sizes,
+        group_covariance,
+        residual_lag_correlation,
+    )
+
+    fit = (getattr(cal, "fits", None) or {}).get("joint")
+    if (
+        fit is None
+        or getattr(fit, "normal_matrix", None) is None
+        or getattr(cal.params, "plane", None) is None
+    ):
+        return None
+    hit = _CORRELATED.get(id(fit))
+    if hit is not None and hit[0]() is fit and hit[1] is cal.data:
+        return hit[2]
+    out = None
+    r = np.asarray(fit.residuals, dtype=np.float64).reshape(-1)
+    bounds = np.cumsum([0] + list(_group_sizes(cal, fit.params)))
+    if bounds[-1] == len(r) and any(
+        len(residual_lag_correlation(r[lo:hi]))
+        for name, lo, hi in zip(GROUPS, bounds[:-1], bounds[1:])
+        if name in ORDERED_GROUPS
+    ):
+        gc = group_covariance(cal)
+        out = gc if gc.correlation_time else None
+    key = id(fit)
+    _CORRELATED[key] = (weakref.ref(fit, lambda _, k=key: _CORRELATED.pop(k, None)), cal.data, out)
+    return out
 
 
 def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
@@ -55,6 +142,11 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
 
     The covariance is `max(1, s²) (JᵀJ)⁺`: the stated noise σ, scaled up where the
     residuals show more (s² > 1), never down (`variance_factor` reports s² itself).
+    Where the stripe centres along a laser line share their errors ([`correlated_groups`][]),
+    it is raised ([`raise_covariance`][]) to the sandwich covariance that counts that
+    correlation (`metrology.group_covariance`: each group's own pixel noise, a banded
+    residual covariance along the lines) wherever that is larger, never lowered;
+    `correlation_time` then holds each correlated group's `τ = 1 + 2 Σ ρ_k`.
 
     **Returns:** a [`Diagnostics`][] (`covariance` in physical units; `singular_values`
     are the square roots of the scaled eigenvalues).
@@ -79,6 +171,16 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     # the board) scatter 4× less than the stated in-plane stripe σ, s² = 0.17, and Σ
     # scaled by it understated the spread of re-solved lengths 2.2× (Monte Carlo).
     cov = max(1.0, s2) * (d[:, None] * ((V * inv) @ V.T) * d[None, :])
+    tau = {}
+    groups = correlated_groups(cal) if block == "joint" else None
+    if groups is not None and groups.covariance.shape == cov.shape:
+        # neighbouring stripe centres share their errors: (JᵀJ)⁺ counts them as
+        # independent (up to √τ too small for what the lines determine); raise Σ to the
+        # sandwich with their banded covariance wherever that is larger. Σ = T Tᵀ with
+        # T = d V_k (max(1, s²) / λ_k)^½ on the identifiable directions.
+        T = d[:, None] * V[:, keep] * np.sqrt(max(1.0, s2) / lam[keep])[None, :]
+        cov = raise_covariance(T, groups.covariance)
+        tau = dict(groups.correlation_time)
     std, corr = std_and_correlation(cov)
     warnings, nulls = [], []
     for k in np.flatnonzero(~keep):
@@ -105,6 +207,7 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
         warnings=warnings,
         frozen=tuple(cal.freeze),
         coverage=getattr(getattr(cal, "coverage", None), "fraction", None),
+        correlation_time=tau,
     )
 
 

@@ -47,6 +47,9 @@ Measured on rendered colour-JPEG captures (tessar ×1, `detect --scan`, 36 frame
 gauge centres): gauge residuals ρ₁ = 0.88, ρ₂ = 0.63; the error of a second ring's radius
 from exact pixels was +0.086 µm against U = 0.057 µm (k = 2) with independent centres.
 Simulated observations (independent noise) give `ρ_k` under the threshold: unchanged.
+Where a group correlates, the calibration's own stated covariance (`calibrate.
+fit_diagnostics`: the file, the summary, the report) is raised to this one wherever it
+is larger (`calibrate._uncertainty.raise_covariance`).
 """
 
 from __future__ import annotations
