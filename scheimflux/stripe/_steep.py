@@ -36,6 +36,8 @@ _END_FIT = 8
 # line (their spacing along the line is at most 1.41 px at 45 degrees, each within
 # ~0.1 px of the line).
 JOIN_PX = 1.5
+# Largest angle between the two pieces' directions where they meet (deg).
+JOIN_DEG = 20.0
 # Centres of two pieces closer than this (px) are the same point of the line.
 _SAME_PX = 0.7
 # Passes of the other scan direction per image, at most.
@@ -98,6 +100,7 @@ class _End:
     side: int  # -1: the piece's first centre, +1: its last
     stretch: np.ndarray  # entries of the piece from where it turned past 45 deg to the end
     scan_cut: float  # scan index where it turned past 45 deg
+    whole: bool = False  # the whole piece is steeper than 45 deg
 
 
 def _steep_end(p: _Piece, side: int, shape: tuple[int, int], border: float) -> _End | None:
@@ -123,7 +126,7 @@ def _steep_end(p: _Piece, side: int, shape: tuple[int, int], border: float) -> _
     shallow = np.flatnonzero(s[order] <= 1.0)
     pos = int(shallow[0]) if shallow.size else a.size - 1
     stretch = a[order[: pos + 1][::-1]]  # from the cut towards the end
-    return _End(p, side, stretch, float(x[order[pos]]))
+    return _End(p, side, stretch, float(x[order[pos]]), whole=not shallow.size)
 
 
 def _tangent(p: _Piece, j: int, side: int) -> np.ndarray:
@@ -144,14 +147,17 @@ def _join(end: _End, q: _Piece) -> bool:
     live = np.flatnonzero(q.alive)
     if live.size < 3:
         return False
-    dist, _ = cKDTree(q.uv[live]).query(p.uv[end.stretch])
+    dist, near = cKDTree(q.uv[live]).query(p.uv[end.stretch])
     hit = np.flatnonzero(dist <= JOIN_PX)
     if hit.size == 0:
         return False
     k = int(hit[0])
-    j = end.stretch[k]
-    p.alive[end.stretch[k + 1 :]] = False
+    j = int(end.stretch[k])
     t = _tangent(p, j, end.side)
+    # one line continued, not another one crossing it: the same direction there
+    if abs(float(t @ _tangent(q, int(live[near[k]]), 1))) < math.cos(math.radians(JOIN_DEG)):
+        return False
+    p.alive[end.stretch[k + 1 :]] = False
     ahead = (q.uv - p.uv[j]) @ t > 0.75
     q.alive &= ahead
     return True
@@ -215,7 +221,9 @@ def follow_steep(
     width = float(np.median(widths)) if widths.size else 5.0
     border = width + 3.0
     pad = int(math.ceil(3.0 * width)) + 4
-    primary = _pieces(result, primary=True)
+    # (the longest first: a fragment of the steep part is judged after the line's
+    # steep parts are found from its main pieces)
+    primary = sorted(_pieces(result, primary=True), key=lambda p: -p.idx.size)
     pieces: list[_Piece] = list(primary)
     queue = [(p, side) for p in primary for side in (-1, 1)]
     done: set[tuple[int, int]] = set()
@@ -228,6 +236,15 @@ def follow_steep(
         end = _steep_end(p, side, shape, border)
         if end is None:
             continue
+        if end.whole:
+            # a fragment of the steep part (the scan's centres thin out there): where
+            # another scan's piece covers it, that one holds the stretch alone
+            others = [q.uv[q.alive] for q in pieces[len(primary) :] if q.alive.any()]
+            if others:
+                dist, _ = cKDTree(np.concatenate(others)).query(p.uv[p.alive])
+                if np.mean(dist <= JOIN_PX) >= 0.5:
+                    p.alive[:] = False
+                    continue
         # another piece covers the stretch already (a line steep in its middle is
         # reached from both sides): cut the two there, once
         met = False
@@ -333,4 +350,14 @@ def follow_steep(
         confidence=column("confidence", 0.0),
         segment=segment,
         steep=np.concatenate([np.zeros(n, bool), np.ones(len(rows), bool)])[order],
+    )
+
+
+def steep_note(name: str, result: StripeResult) -> str:
+    """One line naming the part of `name`'s line left out because it runs too steep for
+    the scan direction asked for (`StripeResult.steep_left_out_px`)."""
+    return (
+        f"{name}: {result.steep_left_out_px:.0f} px ({result.steep_left_out_fraction:.0%}) of "
+        f"the line runs too steep for {result.orientation} and is left out (orientation "
+        "auto takes it from the other scan direction)"
     )
