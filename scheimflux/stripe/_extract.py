@@ -495,18 +495,19 @@ def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult
     line) found by the other scan direction (`_steep.py`): merged in line order for
     `orientation="auto"`, their length reported for a given orientation."""
     shape = np.shape(image)[:2]
-    widths = result.width[result.valid & np.isfinite(result.width)]
-    width = float(np.median(widths)) if widths.size else _DEFAULT_WIDTH
-    min_segment = options.get("min_segment")
-    min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
-    roi = as_mask(options.get("mask"), shape)
 
     def extract_other(orientation: str, band: np.ndarray) -> StripeResult:
+        widths = result.width[result.valid & np.isfinite(result.width)]
+        width = float(np.median(widths)) if widths.size else _DEFAULT_WIDTH
+        min_segment = options.get("min_segment")
+        min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+        roi = as_mask(options.get("mask"), shape)
         opts = {**options, "orientation": orientation, "channel": result.channel}
+        band = band if roi is None else band & roi
         return _extract_track(image, **{**opts, "mask": band}, min_line=min_pts)[0]
 
     merge = options.get("orientation", "auto") == "auto"
-    return follow_steep(result, shape, roi, extract_other, merge)
+    return follow_steep(result, shape, extract_other, merge)
 
 
 def _noise_along(

@@ -163,9 +163,9 @@ def _join(end: _End, q: _Piece) -> bool:
     return True
 
 
-def _band(end: _End, shape: tuple[int, int], pad: int, roi: np.ndarray | None) -> np.ndarray:
+def _band(end: _End, shape: tuple[int, int], pad: int) -> np.ndarray:
     """The image beyond the end's cut, in its piece's scan lines (a band of columns
-    for a vertical scan), less `roi`."""
+    for a vertical scan)."""
     h, w = shape
     n = w if end.piece.orientation == "vertical-scan" else h
     if end.side > 0:
@@ -177,7 +177,7 @@ def _band(end: _End, shape: tuple[int, int], pad: int, roi: np.ndarray | None) -
         band[:, lo:hi] = True
     else:
         band[lo:hi, :] = True
-    return band if roi is None else band & roi
+    return band
 
 
 def _near_end(q: _Piece, point: np.ndarray) -> int:
@@ -206,10 +206,29 @@ def _length(uv: np.ndarray) -> float:
     return float(d[d <= _GAP_PX].sum())
 
 
+def _may_turn_steep(result: StripeResult) -> bool:
+    """Whether any linked segment of `result` ends steeper than `STEEP_END_DEG` (the
+    slope test of `_steep_end` alone, vectorised: it runs on every frame)."""
+    a = np.flatnonzero(result.valid)
+    if a.size < _END_FIT:
+        return False
+    col = 0 if result.orientation == "vertical-scan" else 1
+    x, y = result.uv[a, col], result.uv[a, 1 - col]
+    cut = np.flatnonzero(result.segment[a[1:]] != result.segment[a[:-1]]) + 1
+    first = np.concatenate(([0], cut))
+    last = np.concatenate((cut, [a.size])) - _END_FIT
+    # (a segment shorter than the window is judged on the window from its start)
+    at = np.concatenate((first, np.maximum(last, first)))[:, None] + np.arange(_END_FIT)
+    xs, ys = x[np.minimum(at, a.size - 1)], y[np.minimum(at, a.size - 1)]
+    xm = xs - xs.mean(axis=1, keepdims=True)
+    den = np.einsum("ij,ij->i", xm, xm)
+    num = np.abs(np.einsum("ij,ij->i", xm, ys - ys.mean(axis=1, keepdims=True)))
+    return bool(np.any(num > math.tan(math.radians(STEEP_END_DEG)) * den))
+
+
 def follow_steep(
     result: StripeResult,
     shape: tuple[int, int],
-    roi: np.ndarray | None,
     extract_other: Callable[[str, np.ndarray], StripeResult],
     merge: bool,
 ) -> StripeResult:
@@ -217,6 +236,8 @@ def follow_steep(
     the other one (`extract_other(orientation, band_mask)`) and merged in line order
     (`merge`), or, without `merge`, `result` itself with the length (px) and fraction of
     the line that those parts hold and it lacks (`steep_left_out_px`)."""
+    if not _may_turn_steep(result):
+        return result
     widths = result.width[result.valid & np.isfinite(result.width)]
     width = float(np.median(widths)) if widths.size else 5.0
     border = width + 3.0
@@ -262,7 +283,7 @@ def follow_steep(
         if met or passes >= MAX_PASSES:
             continue
         passes += 1
-        other = extract_other(_OTHER[p.orientation], _band(end, shape, pad, roi))
+        other = extract_other(_OTHER[p.orientation], _band(end, shape, pad))
         best = None
         for q in _pieces(other, primary=False):
             live = q.uv[q.alive]
