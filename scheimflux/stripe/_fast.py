@@ -1403,3 +1403,45 @@ def block_noise_u8(img, n_rows):
         if i >= keep:
             break
     return out
+
+
+@_jit
+def steep_end(uv, col, valid, segment, n_fit, lim):
+    """`_steep._may_turn_steep` (its NumPy reference) in one pass: whether the straight
+    line through the first or last `n_fit` valid centres of any run of one `segment`
+    label (a segment shorter than that: its first `n_fit` valid centres, into the next
+    one) rises more than `lim` along `uv[:, col]`."""
+    n = valid.shape[0]
+    idx = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        if valid[i]:
+            idx[m] = i
+            m += 1
+    if m < n_fit:
+        return False
+    start = 0
+    for k in range(1, m + 1):
+        if k < m and segment[idx[k]] == segment[idx[k - 1]]:
+            continue
+        # the run [start, k): windows at its start and its end
+        for w0 in (start, max(k - n_fit, start)):
+            sx = 0.0
+            sy = 0.0
+            for t in range(n_fit):
+                j = idx[min(w0 + t, m - 1)]
+                sx += uv[j, col]
+                sy += uv[j, 1 - col]
+            mx = sx / n_fit
+            my = sy / n_fit
+            den = 0.0
+            num = 0.0
+            for t in range(n_fit):
+                j = idx[min(w0 + t, m - 1)]
+                dx = uv[j, col] - mx
+                den += dx * dx
+                num += dx * (uv[j, 1 - col] - my)
+            if abs(num) > lim * den:
+                return True
+        start = k
+    return False

@@ -25,6 +25,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import _fast
 from ._result import StripeResult
 
 # A piece's end is steep where the straight line through its last `_END_FIT` centres
@@ -209,10 +210,13 @@ def _length(uv: np.ndarray) -> float:
 def _may_turn_steep(result: StripeResult) -> bool:
     """Whether any linked segment of `result` ends steeper than `STEEP_END_DEG` (the
     slope test of `_steep_end` alone, vectorised: it runs on every frame)."""
+    col = 0 if result.orientation == "vertical-scan" else 1
+    lim = math.tan(math.radians(STEEP_END_DEG))
+    if _fast.enabled:
+        return bool(_fast.steep_end(result.uv, col, result.valid, result.segment, _END_FIT, lim))
     a = np.flatnonzero(result.valid)
     if a.size < _END_FIT:
         return False
-    col = 0 if result.orientation == "vertical-scan" else 1
     x, y = result.uv[a, col], result.uv[a, 1 - col]
     cut = np.flatnonzero(result.segment[a[1:]] != result.segment[a[:-1]]) + 1
     first = np.concatenate(([0], cut))
@@ -223,7 +227,7 @@ def _may_turn_steep(result: StripeResult) -> bool:
     xm = xs - xs.mean(axis=1, keepdims=True)
     den = np.einsum("ij,ij->i", xm, xm)
     num = np.abs(np.einsum("ij,ij->i", xm, ys - ys.mean(axis=1, keepdims=True)))
-    return bool(np.any(num > math.tan(math.radians(STEEP_END_DEG)) * den))
+    return bool(np.any(num > lim * den))
 
 
 def follow_steep(
