@@ -501,10 +501,8 @@ def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult
         width = float(np.median(widths)) if widths.size else _DEFAULT_WIDTH
         min_segment = options.get("min_segment")
         min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
-        roi = as_mask(options.get("mask"), shape)
         opts = {**options, "orientation": orientation, "channel": result.channel}
-        band = band if roi is None else band & roi
-        return _extract_track(image, **{**opts, "mask": band}, min_line=min_pts)[0]
+        return _extract_track(image, **opts, min_line=min_pts, band=band)[0]
 
     merge = options.get("orientation", "auto") == "auto"
     return follow_steep(result, shape, extract_other, merge)
@@ -606,13 +604,15 @@ def _extract_track(
     min_segment: int | None = None,
     track: LongRidge | None = None,
     min_line: int | None = None,
+    band: np.ndarray | None = None,
 ) -> tuple[StripeResult, _Retry | None]:
     """`extract_stripe` on one signal, from the coarse track or, given `track` (a
     long-ridge path in the scan frame of `orientation`), from that path. Also returns
     what a long-ridge search needs where no centre was found (None otherwise).
     `min_line`: scan lines the longest segment must span for the frame to hold a line
     (None: `_min_line`; the steep part of a line found already, `_steep.py`, needs only
-    a segment's own minimum)."""
+    a segment's own minimum). `band`: (H, W) bool, where to look besides `mask` (the
+    signal, and a gain map fitted inside `mask`, stay those of the whole image)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     _check_gain(background_gain)
     asked = orientation
@@ -621,6 +621,8 @@ def _extract_track(
         image, background, channel, width, normalise_background, background_gain, mask
     )
     roi = as_mask(mask, img.shape)
+    if band is not None:
+        roi = band if roi is None else roi & band
     # the frame's maximum (the clipping level of an integer image without `saturation`)
     # from the same pass as the block average where the signal is the plain image
     top = None
