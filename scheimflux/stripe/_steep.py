@@ -32,7 +32,13 @@ from ._result import StripeResult
 # makes more than this angle with the scan-perpendicular (the scan chosen by "auto" is
 # within 45 degrees of a straight line everywhere, so a straight line never has one).
 STEEP_END_DEG = 50.0
+# ... or steeper than TURN_FROM_DEG and turned by more than TURN_DEG since the window
+# _BACK centres before (a sharp bend: the scan's centres there are refused from ~45
+# degrees on, as the profile along the scan line widens past the width test's 1.4 x).
+TURN_FROM_DEG = 35.0
+TURN_DEG = 8.0
 _END_FIT = 8
+_BACK = 16
 # Largest distance (px) between centres of the two scans that see the same stretch of
 # line (their spacing along the line is at most 1.41 px at 45 degrees, each within
 # ~0.1 px of the line).
@@ -112,11 +118,7 @@ def _steep_end(p: _Piece, side: int, shape: tuple[int, int], border: float) -> _
         return None
     x, y = p.xy()
     x, y = x[a], y[a]
-    fit = slice(-_END_FIT, None) if side > 0 else slice(0, _END_FIT)
-    if np.ptp(x[fit]) <= 0:
-        return None
-    slope = np.polyfit(x[fit], y[fit], 1)[0]
-    if abs(slope) <= math.tan(math.radians(STEEP_END_DEG)):
+    if not _turns_steep(x[::side], y[::side]):
         return None
     u, v = p.uv[a[-1] if side > 0 else a[0]]
     h, w = shape
@@ -207,27 +209,65 @@ def _length(uv: np.ndarray) -> float:
     return float(d[d <= _GAP_PX].sum())
 
 
+def _angle(x: np.ndarray, y: np.ndarray) -> np.ndarray | np.floating:
+    """Angle (deg, 0-90) of the straight line through each row of (K, n) samples to the
+    x axis."""
+    xm = x - x.mean(axis=-1, keepdims=True)
+    den = np.einsum("...j,...j->...", xm, xm)
+    num = np.abs(np.einsum("...j,...j->...", xm, y - y.mean(axis=-1, keepdims=True)))
+    return np.degrees(np.arctan2(num, den))
+
+
+def _steep_angles(
+    a0: np.ndarray | np.floating, a1: np.ndarray | np.floating, back: np.ndarray | np.bool_
+) -> np.ndarray | np.bool_:
+    """The steep-end rule on the end window's angle `a0` and, where `back`, the angle
+    `a1` of the window `_BACK` centres before it."""
+    turn = back & (a0 > TURN_FROM_DEG) & (a0 - a1 > TURN_DEG)
+    return (a0 > STEEP_END_DEG) | turn
+
+
+def _turns_steep(x: np.ndarray, y: np.ndarray) -> bool:
+    """Whether a piece whose centres `(x, y)` end at their last entry ends steep."""
+    n = x.size
+    if n < _END_FIT:
+        return False
+    end = np.arange(n - _END_FIT, n)
+    back = n >= _END_FIT + _BACK
+    a0 = _angle(x[end], y[end])
+    a1 = _angle(x[end - _BACK], y[end - _BACK]) if back else a0
+    return bool(_steep_angles(a0, a1, np.bool_(back)))
+
+
 def _may_turn_steep(result: StripeResult) -> bool:
-    """Whether any linked segment of `result` ends steeper than `STEEP_END_DEG` (the
-    slope test of `_steep_end` alone, vectorised: it runs on every frame)."""
+    """Whether any linked segment of `result` ends steep (`_steep_end`'s angle rule
+    alone, on the valid centres of each run of one segment label; it runs on every
+    frame: compiled, `_fast.steep_end`, or vectorised here)."""
     col = 0 if result.orientation == "vertical-scan" else 1
-    lim = math.tan(math.radians(STEEP_END_DEG))
     if _fast.enabled:
-        return bool(_fast.steep_end(result.uv, col, result.valid, result.segment, _END_FIT, lim))
+        return bool(_fast.steep_end(
+            result.uv, col, result.valid, result.segment, _END_FIT, _BACK,
+            STEEP_END_DEG, TURN_FROM_DEG, TURN_DEG,
+        ))  # fmt: skip
     a = np.flatnonzero(result.valid)
     if a.size < _END_FIT:
         return False
     x, y = result.uv[a, col], result.uv[a, 1 - col]
     cut = np.flatnonzero(result.segment[a[1:]] != result.segment[a[:-1]]) + 1
     first = np.concatenate(([0], cut))
-    last = np.concatenate((cut, [a.size])) - _END_FIT
-    # (a segment shorter than the window is judged on the window from its start)
-    at = np.concatenate((first, np.maximum(last, first)))[:, None] + np.arange(_END_FIT)
-    xs, ys = x[np.minimum(at, a.size - 1)], y[np.minimum(at, a.size - 1)]
-    xm = xs - xs.mean(axis=1, keepdims=True)
-    den = np.einsum("ij,ij->i", xm, xm)
-    num = np.abs(np.einsum("ij,ij->i", xm, ys - ys.mean(axis=1, keepdims=True)))
-    return bool(np.any(num > lim * den))
+    stop = np.concatenate((cut, [a.size]))
+    runs = stop - first
+    keep = runs >= _END_FIT
+    first, stop, runs = first[keep], stop[keep], runs[keep]
+    # the windows at each run's start (read backwards) and end, and _BACK further in
+    step = np.arange(_END_FIT)
+    end = np.concatenate((first[:, None] + _END_FIT - 1 - step, stop[:, None] - _END_FIT + step))
+    inward = np.concatenate((np.full(first.size, _BACK), np.full(stop.size, -_BACK)))
+    back = np.concatenate((runs, runs)) >= _END_FIT + _BACK
+    there = np.clip(end + inward[:, None], 0, a.size - 1)
+    a0 = _angle(x[end], y[end])
+    a1 = _angle(x[there], y[there])
+    return bool(np.any(_steep_angles(a0, a1, back)))
 
 
 def follow_steep(
@@ -308,6 +348,18 @@ def follow_steep(
         queue.append((q, -q_side))
     if len(pieces) == len(primary):
         return result
+    # a fragment of the steep part that the first scan kept (its centres thin out
+    # there), steeper than 45 degrees and covered by another scan's piece, gives way
+    # to that piece
+    others = np.concatenate([q.uv[q.alive] for q in pieces[len(primary) :]])
+    for p in primary:
+        if p.children or p.alive.sum() < 2 or not others.size:
+            continue
+        x, y = p.xy()
+        a = np.flatnonzero(p.alive)
+        steep = np.median(np.abs(_local_slope(x[a], y[a]))) > 1.0
+        if steep and np.mean(cKDTree(others).query(p.uv[a])[0] <= JOIN_PX) >= 0.5:
+            p.alive[:] = False
     # a piece that runs over another one whose end was not steep (and so not cut)
     # keeps none of its centres there: no point of the line twice
     kept = np.concatenate([p.uv[p.alive] for p in primary])
