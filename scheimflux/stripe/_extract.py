@@ -409,6 +409,11 @@ def extract_stripe(
     - `orientation`: `"vertical-scan"` (one centre per column u: a mostly horizontal
       line), `"horizontal-scan"` (one per row v), or `"auto"` (from the ridge-normal
       tensor of the image; `StripeResult.ambiguous` tells when no direction dominates).
+      With `"auto"` the parts of a curved line too steep for the scan direction (its
+      segments end steeper than 50 degrees to the scan-perpendicular, or bend past 35)
+      are taken from the other scan direction and merged in order along the line
+      (`StripeResult.steep`, `_steep.py`); with a given direction their length is
+      reported (`StripeResult.steep_left_out_px`).
     - `band_px`: half-height of the band around the coarse track for Steger; `"auto"`:
       from `width_px`; `None`: filter the whole frame (slow baseline, same centres).
     - `min_strength`: smallest accepted strength (grey levels of the signal); `None`:
@@ -445,7 +450,9 @@ def extract_stripe(
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
 
     **Returns:** a `StripeResult` with one entry per scan line (W for a vertical scan,
-    H for a horizontal one); a frame without a line gives all-invalid entries.
+    H for a horizontal one); where steep parts were merged, their centres inserted
+    among them in order along the line; a frame without a line gives all-invalid
+    entries.
 
     **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
     mask or background of the wrong shape, or bad options.

@@ -145,7 +145,8 @@ def _tangent(p: _Piece, j: int, side: int) -> np.ndarray:
 def _join(end: _End, q: _Piece) -> bool:
     """Cut `end`'s piece and `q` at the first centre of the end's stretch that `q`
     covers (within `JOIN_PX`): the piece keeps its centres up to it, `q` those beyond
-    it along the line. False where `q` does not meet the stretch."""
+    it along the line. False (and nothing cut) where `q` does not meet the stretch,
+    runs another way there, or holds fewer than 3 centres beyond it."""
     p = end.piece
     live = np.flatnonzero(q.alive)
     if live.size < 3:
@@ -160,9 +161,11 @@ def _join(end: _End, q: _Piece) -> bool:
     # one line continued, not another one crossing it: the same direction there
     if abs(float(t @ _tangent(q, int(live[near[k]]), 1))) < math.cos(math.radians(JOIN_DEG)):
         return False
+    ahead = q.alive & ((q.uv - p.uv[j]) @ t > 0.75)
+    if ahead.sum() < 3:  # nothing beyond the piece: it keeps its own centres
+        return False
     p.alive[end.stretch[k + 1 :]] = False
-    ahead = (q.uv - p.uv[j]) @ t > 0.75
-    q.alive &= ahead
+    q.alive = ahead
     return True
 
 
@@ -338,7 +341,7 @@ def follow_steep(
         if best is None:
             continue
         q = best[1]
-        if not _join(end, q) or q.alive.sum() < 3:
+        if not _join(end, q):
             continue
         j = end.stretch[np.flatnonzero(p.alive[end.stretch])[-1]]
         q_side = _near_end(q, p.uv[j])
