@@ -131,6 +131,25 @@ def test_steep_middle_of_an_s_curve_is_extracted_once():
     assert np.unique(res.segment[res.valid & res.steep]).size == 1
 
 
+def test_u_whose_arms_the_auto_scan_meets_twice():
+    # a parabola through a 600 x 800 image whose arms (33 % of it past 68 degrees) are
+    # longer than its bottom: "auto" scans rows, which meet both arms; one arm is kept,
+    # the bottom follows from its bend, the other arm from the bottom's far end (the
+    # edge of the band the bottom was found in)
+    img, truth = render_capture(
+        shape=(600, 800), target="plain", line_offset_px=-250.0, line_curvature=0.009, seed=1
+    )
+    res = extract_stripe(img)
+    assert res.orientation == "horizontal-scan"
+    d, _, s, interior, covered, _, weight = _score(res, truth)
+    assert weight[covered].sum() / weight.sum() >= 0.95  # was 0.31
+    assert math.sqrt(np.mean(d[interior] ** 2)) <= 0.03 and np.all(np.abs(d[interior]) <= 0.1)
+    uv = res.uv[res.valid]
+    assert cKDTree(uv).query(uv, k=2)[0][:, 1].min() >= 0.7
+    step = np.diff(s[interior])
+    assert np.all(step > 0) or np.all(step < 0)
+
+
 @pytest.mark.slow  # ~40 s: the paper rig's ray trace compiles
 def test_steep_ends_of_a_ring_gauge_scan_frame_are_extracted():
     img, truth = render_capture(shape=(1200, 1600), target="plain", line_px=_gauge_line(), seed=1)

@@ -110,15 +110,17 @@ class _End:
     whole: bool = False  # the whole piece is steeper than 45 deg
 
 
-def _steep_end(p: _Piece, side: int, shape: tuple[int, int], border: float) -> _End | None:
-    """The piece's end on `side` if it runs steeper than `STEEP_END_DEG` there, away
-    from the image's border (a line leaving the image is not followed)."""
+def _steep_end(
+    p: _Piece, side: int, shape: tuple[int, int], border: float, force: bool = False
+) -> _End | None:
+    """The piece's end on `side` if it runs steep there (`_turns_steep`; any end with
+    `force`), away from the image's border (a line leaving the image is not followed)."""
     a = np.flatnonzero(p.alive)
     if a.size < 6:
         return None
     x, y = p.xy()
     x, y = x[a], y[a]
-    if not _turns_steep(x[::side], y[::side]):
+    if not force and not _turns_steep(x[::side], y[::side]):
         return None
     u, v = p.uv[a[-1] if side > 0 else a[0]]
     h, w = shape
@@ -293,15 +295,15 @@ def follow_steep(
     # steep parts are found from its main pieces)
     primary = sorted(_pieces(result, primary=True), key=lambda p: -p.idx.size)
     pieces: list[_Piece] = list(primary)
-    queue = [(p, side) for p in primary for side in (-1, 1)]
+    queue = [(p, side, False) for p in primary for side in (-1, 1)]
     done: set[tuple[int, int]] = set()
     passes = 0
     while queue:
-        p, side = queue.pop(0)
+        p, side, force = queue.pop(0)
         if (id(p), side) in done or not p.alive.any():
             continue
         done.add((id(p), side))
-        end = _steep_end(p, side, shape, border)
+        end = _steep_end(p, side, shape, border, force)
         if end is None:
             continue
         if end.whole:
@@ -330,7 +332,8 @@ def follow_steep(
         if met or passes >= MAX_PASSES:
             continue
         passes += 1
-        other = extract_other(_OTHER[p.orientation], _band(end, shape, pad))
+        band = _band(end, shape, pad)
+        other = extract_other(_OTHER[p.orientation], band)
         best = None
         for q in _pieces(other, primary=False):
             live = q.uv[q.alive]
@@ -348,7 +351,14 @@ def follow_steep(
         p.children.append((side, q, q_side))
         pieces.append(q)
         done.add((id(q), q_side))
-        queue.append((q, -q_side))
+        # its far end: followed where it turns steep, and where it stops at the band's
+        # edge (the line goes on beyond it: a U's bottom found from one arm meets the
+        # other arm there)
+        a = np.flatnonzero(q.alive)
+        far = q.uv[a[0] if q_side > 0 else a[-1]]
+        iu, iv = np.clip(np.rint(far).astype(int), 0, [shape[1] - 1, shape[0] - 1])
+        window = band[max(iv - pad, 0) : iv + pad + 1, max(iu - pad, 0) : iu + pad + 1]
+        queue.append((q, -q_side, bool(not window.all())))
     if len(pieces) == len(primary):
         return result
     # a fragment of the steep part that the first scan kept (its centres thin out
