@@ -410,7 +410,8 @@ def extract_stripe(
       line), `"horizontal-scan"` (one per row v), or `"auto"` (from the ridge-normal
       tensor of the image; `StripeResult.ambiguous` tells when no direction dominates).
       With `"auto"` the parts of a curved line too steep for the scan direction (its
-      segments end steeper than 50 degrees to the scan-perpendicular, or bend past 35)
+      segments end steeper than 50 degrees to the scan-perpendicular, or past 35
+      degrees and still turning)
       are taken from the other scan direction and merged in order along the line
       (`StripeResult.steep`, `_steep.py`); with a given direction their length is
       reported (`StripeResult.steep_left_out_px`).

@@ -33,10 +33,14 @@ from ._result import StripeResult
 # within 45 degrees of a straight line everywhere, so a straight line never has one).
 STEEP_END_DEG = 50.0
 # ... or steeper than TURN_FROM_DEG and turned by more than TURN_DEG since the window
-# _BACK centres before (a sharp bend: the scan's centres there are refused from ~45
-# degrees on, as the profile along the scan line widens past the width test's 1.4 x).
+# _BACK centres before (a bend: the scan's centres are refused from ~45-50 degrees on
+# where the profile along the scan line passes the width test's 1.4 x the median
+# width). A straight line's two windows agree within ~0.5 degrees (centre noise
+# 0.05 px); 3 degrees over 16 centres is a radius of curvature under ~300 px. None of
+# `tests/test_stripe_capture.py`'s board scenes (lines at 4-135 degrees, clipped or
+# not, with and without a laser-off frame) has such an end.
 TURN_FROM_DEG = 35.0
-TURN_DEG = 8.0
+TURN_DEG = 3.0
 _END_FIT = 8
 _BACK = 16
 # Largest distance (px) between centres of the two scans that see the same stretch of
