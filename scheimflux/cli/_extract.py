@@ -8,7 +8,9 @@ the other channels for a red laser under white light). With `--laser-off SUFFIX`
 file NAME<SUFFIX>.EXT beside NAME.EXT is that pose's laser-off image: it is not a frame
 itself, and the centres are found in the difference. Unreadable images, images of
 another size than the first one, and images without a line are reported by name and
-written as empty frames, so that frame indices match the file order.
+written as empty frames, so that frame indices match the file order. The parts of a
+curved line too steep for the scan direction are taken from the other one (with
+`--orientation auto`); with a given `--orientation` their length is reported as left out.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from ..stripe._folder import (
     read_image as read_image,
 )
 from ..stripe._image import CHANNELS
+from ..stripe._steep import steep_note
 from ._common import CLIError, check_output, progress, refuse_to_clobber, warn
 
 
@@ -89,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     skipped: list[str] = []
     empty: list[str] = []
     n_points = 0
+    n_steep = 0
     options = dict(
         method=args.method,
         width_px=args.width_px,
@@ -113,6 +117,9 @@ def run(args: argparse.Namespace) -> int:
                 f"{name}: no dominant line direction; scanned {result.orientation} "
                 "(set --orientation to choose)",
             )
+        if result.steep_left_out_px > 0:
+            warn("extract", steep_note(name, result))
+        n_steep += bool(result.steep.any())
         frames.append(result)
         n_points += int(result.valid.sum())
     if len(skipped) == len(pairs):
@@ -122,6 +129,11 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"extracted {n_points} points from {read} frame(s) into {args.out}"
         + (f"; {len(empty)} frame(s) without a line" if empty else "")
+        + (
+            f"; the steep parts of {n_steep} curved line(s) from the other scan direction"
+            if n_steep
+            else ""
+        )
         + (f"; skipped {len(skipped)} unreadable frame(s)" if skipped else "")
     )
     return 0

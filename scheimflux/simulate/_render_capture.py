@@ -299,6 +299,7 @@ def render_capture(
     line_angle_deg: float = 0.0,
     line_offset_px: float = 0.0,
     line_curvature: float = 0.0,
+    line_px: np.ndarray | None = None,
     width_px: float = 5.0,
     peak: float = 0.6,
     ambient: float = 0.3,
@@ -330,6 +331,9 @@ def render_capture(
     - `line_mm`: `(point, direction)` of the laser line on the board (mm); `None`: an
       image line at `line_angle_deg` from the u axis, `line_offset_px` off the image
       centre along its normal, bent by `line_curvature` (1/px, a parabola).
+    - `line_px`: the exact centre line itself, a polyline (K, 2) of `(u, v)` pixels (e.g.
+      a ring gauge's traced scan pixels, densified); replaces `line_mm` and the
+      analytic line. Keep its samples <= 1 px apart (the truth is the polyline).
     - `width_px`: FWHM of the laser line across itself (px) before the blur.
     - `peak`: laser peak on a white (albedo 1) surface, fraction of full scale; above
       `1 / white` the core saturates.
@@ -413,7 +417,9 @@ def render_capture(
         region = region[np.all(np.isfinite(region), axis=1)]
 
     # The exact centre line, clipped to the target and the image.
-    if line_mm is not None:
+    if line_px is not None:
+        line = np.asarray(line_px, np.float64).reshape(-1, 2)
+    elif line_mm is not None:
         scale = float(np.median(np.hypot(*np.diff(region, axis=0).T))) / (
             (extent[1] - extent[0]) / 49.0
         ) if target != "plain" else 1.0

@@ -39,6 +39,7 @@ from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._rims import ONE_SIDE_LINE, ONE_SIDE_REACH, bracketed, edge_spread, rim_centres
+from ._steep import follow_steep
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -408,6 +409,12 @@ def extract_stripe(
     - `orientation`: `"vertical-scan"` (one centre per column u: a mostly horizontal
       line), `"horizontal-scan"` (one per row v), or `"auto"` (from the ridge-normal
       tensor of the image; `StripeResult.ambiguous` tells when no direction dominates).
+      With `"auto"` the parts of a curved line too steep for the scan direction (its
+      segments end steeper than 50 degrees to the scan-perpendicular, or past 35
+      degrees and still turning)
+      are taken from the other scan direction and merged in order along the line
+      (`StripeResult.steep`, `_steep.py`); with a given direction their length is
+      reported (`StripeResult.steep_left_out_px`).
     - `band_px`: half-height of the band around the coarse track for Steger; `"auto"`:
       from `width_px`; `None`: filter the whole frame (slow baseline, same centres).
     - `min_strength`: smallest accepted strength (grey levels of the signal); `None`:
@@ -444,7 +451,9 @@ def extract_stripe(
     - `min_segment`: fewest centres of a kept segment; `None`: `max(8, 2 width)`.
 
     **Returns:** a `StripeResult` with one entry per scan line (W for a vertical scan,
-    H for a horizontal one); a frame without a line gives all-invalid entries.
+    H for a horizontal one); where steep parts were merged, their centres inserted
+    among them in order along the line; a frame without a line gives all-invalid
+    entries.
 
     **Raises:** `ValueError` for input that is not a numeric grey or colour image, a
     mask or background of the wrong shape, or bad options.
@@ -463,7 +472,9 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
     (`_longridge.py`) is tried as the track instead (in each other colour candidate
     first, for a colour image with `channel="auto"`)."""
     result, retry = _extract_track(image, **options)
-    if result.valid.any() or retry is None:
+    if result.valid.any():
+        return _with_steep(image, result, options)
+    if retry is None:
         return result
     signals = {result.channel: retry}  # each channel's failed pass, for the search below
     if options.get("channel", "auto") == "auto" and np.ndim(image) == 3:
@@ -483,8 +494,26 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
         orientation, path = found
         res_l, _ = _extract_track(image, **{**opts, "orientation": orientation}, track=path)
         if res_l.valid.any():
-            return res_l
+            return _with_steep(image, res_l, options)
     return result
+
+
+def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult:
+    """`result` with the parts of its line too steep for its scan direction (a curved
+    line) found by the other scan direction (`_steep.py`): merged in line order for
+    `orientation="auto"`, their length reported for a given orientation."""
+    shape = np.shape(image)[:2]
+
+    def extract_other(orientation: str, band: np.ndarray) -> StripeResult:
+        widths = result.width[result.valid & np.isfinite(result.width)]
+        width = float(np.median(widths)) if widths.size else _DEFAULT_WIDTH
+        min_segment = options.get("min_segment")
+        min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
+        opts = {**options, "orientation": orientation, "channel": result.channel}
+        return _extract_track(image, **opts, min_line=min_pts, band=band)[0]
+
+    merge = options.get("orientation", "auto") == "auto"
+    return follow_steep(result, shape, extract_other, merge)
 
 
 def _noise_along(
@@ -582,10 +611,16 @@ def _extract_track(
     max_jump_px: float | None = None,
     min_segment: int | None = None,
     track: LongRidge | None = None,
+    min_line: int | None = None,
+    band: np.ndarray | None = None,
 ) -> tuple[StripeResult, _Retry | None]:
     """`extract_stripe` on one signal, from the coarse track or, given `track` (a
     long-ridge path in the scan frame of `orientation`), from that path. Also returns
-    what a long-ridge search needs where no centre was found (None otherwise)."""
+    what a long-ridge search needs where no centre was found (None otherwise).
+    `min_line`: scan lines the longest segment must span for the frame to hold a line
+    (None: `_min_line`; the steep part of a line found already, `_steep.py`, needs only
+    a segment's own minimum). `band`: (H, W) bool, where to look besides `mask` (the
+    signal, and a gain map fitted inside `mask`, stay those of the whole image)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     _check_gain(background_gain)
     asked = orientation
@@ -594,6 +629,8 @@ def _extract_track(
         image, background, channel, width, normalise_background, background_gain, mask
     )
     roi = as_mask(mask, img.shape)
+    if band is not None:
+        roi = band if roi is None else roi & band
     # the frame's maximum (the clipping level of an integer image without `saturation`)
     # from the same pass as the block average where the signal is the plain image
     top = None
@@ -915,7 +952,8 @@ def _extract_track(
     valid &= consistent(y, valid)
     jump = max(2.0, 0.5 * width) if max_jump_px is None else float(max_jump_px)
     min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
-    min_line = _min_line(width, min_segment, shape[1])
+    if min_line is None:
+        min_line = _min_line(width, min_segment, shape[1])
     sigma_s = max(width / (2.0 * math.sqrt(3.0)), 0.7)
     if track is not None:
         # the centres beside a refused scan line of a long-ridge track (`_TRACK_TRIM`)

@@ -1403,3 +1403,56 @@ def block_noise_u8(img, n_rows):
         if i >= keep:
             break
     return out
+
+
+@_jit_inner
+def _window_angle(uv, col, idx, w0, n_fit):
+    """Angle (deg) to the scan axis of the straight line through the valid centres
+    `idx[w0 : w0 + n_fit]` (`_steep._angle`)."""
+    sx = 0.0
+    sy = 0.0
+    for t in range(n_fit):
+        sx += uv[idx[w0 + t], col]
+        sy += uv[idx[w0 + t], 1 - col]
+    mx = sx / n_fit
+    my = sy / n_fit
+    den = 0.0
+    num = 0.0
+    for t in range(n_fit):
+        dx = uv[idx[w0 + t], col] - mx
+        den += dx * dx
+        num += dx * (uv[idx[w0 + t], 1 - col] - my)
+    return math.degrees(math.atan2(abs(num), den))
+
+
+@_jit
+def steep_end(uv, col, valid, segment, n_fit, n_back, steep_deg, turn_from_deg, turn_deg):
+    """`_steep._may_turn_steep` (its NumPy reference) in one pass: whether a run of one
+    `segment` label among the valid centres, `n_fit` long or longer, ends (at either
+    end) with its last `n_fit` centres steeper than `steep_deg` to the scan axis, or
+    steeper than `turn_from_deg` and turned by more than `turn_deg` since the `n_fit`
+    centres `n_back` further in (runs of `n_fit + n_back` or more)."""
+    n = valid.shape[0]
+    idx = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        if valid[i]:
+            idx[m] = i
+            m += 1
+    start = 0
+    for k in range(1, m + 1):
+        if k < m and segment[idx[k]] == segment[idx[k - 1]]:
+            continue
+        run = k - start
+        if run >= n_fit:
+            for first_end in (True, False):
+                w0 = start if first_end else k - n_fit
+                a0 = _window_angle(uv, col, idx, w0, n_fit)
+                if a0 > steep_deg:
+                    return True
+                if run >= n_fit + n_back and a0 > turn_from_deg:
+                    w1 = w0 + n_back if first_end else w0 - n_back
+                    if a0 - _window_angle(uv, col, idx, w1, n_fit) > turn_deg:
+                        return True
+        start = k
+    return False

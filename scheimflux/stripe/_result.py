@@ -41,6 +41,14 @@ class StripeResult:
       directions, blobs or no line), so `orientation="auto"` was a guess.
     - `normal_angle_deg`: the dominant direction across the lines, degrees from the u
       axis in [0, 180) (90: a horizontal line), from the ridge-normal tensor.
+    - `steep`: shape (N,), bool: the centre was found by the other scan direction, where
+      the line runs too steep for `orientation`'s scan lines (a curved line; with
+      `orientation="auto"` only). Where any is True the entries are the line's centres
+      in order along it (the steep parts inserted at their place), no longer one per
+      scan line. Default: all False.
+    - `steep_left_out_px`, `steep_left_out_fraction`: the length (px along the line) and
+      fraction of the line found by the other scan direction but not returned, because
+      `orientation` was given (one centre per scan line asked for); 0 otherwise.
     """
 
     uv: np.ndarray
@@ -55,16 +63,21 @@ class StripeResult:
     channel: str = "grey"
     ambiguous: bool = False
     normal_angle_deg: float = float("nan")
+    steep: np.ndarray | None = None
+    steep_left_out_px: float = 0.0
+    steep_left_out_fraction: float = 0.0
 
     def __post_init__(self):
         n = self.uv.shape[0]
+        if self.steep is None:
+            object.__setattr__(self, "steep", np.zeros(n, bool))
         if self.confidence is None:
             object.__setattr__(self, "confidence", np.asarray(self.valid, np.float64))
         if self.segment is None:
             object.__setattr__(self, "segment", np.where(self.valid, 0, -1).astype(np.intp))
         if self.uv.shape != (n, 2):
             raise ValueError(f"StripeResult.uv must have shape (N, 2), got {self.uv.shape}")
-        for name in ("strength", "width", "valid", "saturated", "confidence", "segment"):
+        for name in ("strength", "width", "valid", "saturated", "confidence", "segment", "steep"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(
                     f"StripeResult.{name} must have shape ({n},), got {getattr(self, name).shape}"

@@ -1,0 +1,215 @@
+"""A curved line's parts too steep for the scan direction (`stripe/_steep.py`), on lines
+rendered by `render_capture` (a Gaussian profile across the exact centre line, blur,
+shot and read noise) and scored against that exact line.
+
+Tolerances: the steep centres come from the same Steger pass, only with the other scan
+direction, on a line within 45 degrees of that scan's perpendicular, as the shallow
+centres are: their error is the same noise, compared with the RMS measured on the same
+image's shallow part (0.014-0.016 px on the arc). The arc's part past 68 degrees holds
+~120 centres, correlated over ~5 scan lines by the filter: over 8 seeds its RMS over the
+shallow part's was 0.70-1.39 (mean 1.03, std 0.19), so the bound is 1.5 x (mean + 2.5
+stds; the seed used gives 0.70); its largest error was 1.8-3.4 x the shallow RMS, bounded
+by 6 x.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
+
+from scheimflux.cli._main import main
+from scheimflux.simulate import render_capture
+from scheimflux.simulate._render_capture import _distance_to_polyline
+from scheimflux.stripe import extract_stripe
+from scheimflux.stripe._extract import _extract_track
+
+ARC_SHAPE = (480, 960)
+
+
+def _arc_line() -> np.ndarray:
+    """A circular arc (radius 400 px) whose ends turn to 78 degrees from the u axis
+    (steeper than 68 degrees: 12.8 % of it), 0.04 px samples."""
+    phi = np.radians(np.linspace(12.0, 168.0, 4000))
+    return np.array([480.0, 40.0]) + 400.0 * np.stack([np.cos(phi), np.sin(phi)], 1)
+
+
+def _gauge_line() -> np.ndarray:
+    """A ring gauge's stripe in a rotary-table scan frame (the paper rig, a 2 mm ring
+    seen 60 degrees off its normal: the arc's ends turn steep), the traced pixels
+    joined by a cubic spline, 0.05-0.3 px samples."""
+    from scheimflux.simulate import paper_rig
+    from scheimflux.simulate._gauges import default_stage, gauge_scan
+
+    rig = paper_rig(refine=False)
+    stage = default_stage(rig, 2.0, math.radians(10.0), view_angle_deg=60.0)
+    px = np.asarray(gauge_scan(rig, stage, 2.0, n_frames=1, points_per_frame=400).frames[0].px_true)
+    spline = CubicSpline(np.arange(len(px)), px)
+    return spline(np.linspace(0.0, len(px) - 1.0, 20 * len(px)))
+
+
+def _score(result, truth, end_px=6.0):
+    """Per valid centre: its signed distance to the exact line, the line's angle to the
+    u axis there (deg), its arc length along the line, and whether it lies inside the
+    line (not within `end_px` of an end); and per line sample whether a centre lies
+    within 1 px, with the line's angle there."""
+    line = truth.line_px
+    seg = np.diff(line, axis=0)
+    angle = np.degrees(np.arctan2(np.abs(seg[:, 1]), np.abs(seg[:, 0])))
+    angle = np.r_[angle, angle[-1]]
+    s_line = np.r_[0.0, np.cumsum(np.hypot(*seg.T))]
+    uv = result.uv[result.valid]
+    cont = np.r_[False, ~truth.breaks[1:]]
+    d, inside = _distance_to_polyline(uv, line, cont, cKDTree(line))
+    _, k = cKDTree(line).query(uv)
+    interior = inside & (s_line[k] > end_px) & (s_line[k] < s_line[-1] - end_px)
+    covered = cKDTree(uv).query(line)[0] <= 1.0
+    weight = np.r_[np.hypot(*seg.T), 0.0]  # each sample's length of line
+    return d, angle[k], s_line[k], interior, covered, angle, weight
+
+
+def _check_merged(result, truth, steep_fraction):
+    d, ang, s, interior, covered, line_angle, weight = _score(result, truth)
+    steep_line = line_angle > 68.0
+    if steep_fraction is not None:
+        assert weight[steep_line].sum() / weight.sum() == pytest.approx(steep_fraction, abs=0.01)
+    # the fraction of the line's length within 1 px of a centre
+    cover_steep = weight[steep_line & covered].sum() / weight[steep_line].sum()
+    assert cover_steep >= 0.95, cover_steep
+    assert weight[covered].sum() / weight.sum() >= 0.97
+    shallow_rms = math.sqrt(np.mean(d[interior & (ang < 45.0)] ** 2))
+    steep = interior & (ang > 68.0)
+    assert steep.sum() >= 100
+    assert math.sqrt(np.mean(d[steep] ** 2)) <= 1.5 * shallow_rms
+    assert np.abs(d[steep]).max() <= 6.0 * shallow_rms
+    assert np.all(np.abs(d[interior]) <= 1.0)  # no false centre inside the line
+    # the steep centres are those of the other scan direction
+    assert result.steep[result.valid][steep].mean() >= 0.95
+    # no point twice: the centres are >= 0.7 px apart (one sample per scan line of
+    # whichever scan holds that stretch)
+    uv = result.uv[result.valid]
+    assert cKDTree(uv).query(uv, k=2)[0][:, 1].min() >= 0.7
+    # in order along the line (either way), no centre sends it back (the centres past
+    # the line's ends, at the image's border, all lie nearest its end sample)
+    step = np.diff(s[interior])
+    assert np.all(step > 0) or np.all(step < 0)
+    assert result.steep_left_out_px == 0.0
+
+
+def test_steep_ends_of_an_arc_are_extracted():
+    img, truth = render_capture(shape=ARC_SHAPE, target="plain", line_px=_arc_line(), seed=1)
+    res = extract_stripe(img)
+    assert res.orientation == "vertical-scan" and res.steep.any()
+    _check_merged(res, truth, 0.128)
+    # the old single scan: nothing past ~68 degrees, now reported as left out
+    own = extract_stripe(img, orientation="vertical-scan")
+    _, _, _, _, covered, line_angle, weight = _score(own, truth)
+    steep_line = line_angle > 68.0
+    assert weight[steep_line & covered].sum() / weight[steep_line].sum() <= 0.05
+    assert not own.steep.any() and len(own) == ARC_SHAPE[1]  # one entry per column
+    # what the merged line holds and this one lacks: the arc past ~62 degrees (the
+    # single scan's centres thin out and gaps open from there on)
+    assert 0.18 <= own.steep_left_out_fraction <= 0.30
+    assert own.steep_left_out_px == pytest.approx(
+        own.steep_left_out_fraction * 1089.0, rel=0.05
+    )  # of the arc's 1089 px
+    np.testing.assert_array_equal(own.uv, _extract_track(img, orientation="vertical-scan")[0].uv)
+
+
+def test_steep_middle_of_an_s_curve_is_extracted_once():
+    # v = 360 + 300 tanh((u - 480) / 100): 71.6 degrees at its middle, reached by the
+    # vertical scan's two segments from both sides; the other scan's piece is cut at
+    # both ends
+    u = np.linspace(0.0, 959.0, 20000)
+    line = np.stack([u, 360.0 + 300.0 * np.tanh((u - 480.0) / 100.0)], 1)
+    img, truth = render_capture(shape=(720, 960), target="plain", line_px=line, seed=1)
+    res = extract_stripe(img)
+    assert res.orientation == "vertical-scan"
+    _check_merged(res, truth, None)
+    # one piece of the other scan, between the two segments
+    assert np.unique(res.segment[res.valid & res.steep]).size == 1
+
+
+def test_u_whose_arms_the_auto_scan_meets_twice():
+    # a parabola through a 600 x 800 image whose arms (33 % of it past 68 degrees) are
+    # longer than its bottom: "auto" scans rows, which meet both arms; one arm is kept,
+    # the bottom follows from its bend, the other arm from the bottom's far end (the
+    # edge of the band the bottom was found in)
+    img, truth = render_capture(
+        shape=(600, 800), target="plain", line_offset_px=-250.0, line_curvature=0.009, seed=1
+    )
+    res = extract_stripe(img)
+    assert res.orientation == "horizontal-scan"
+    d, _, s, interior, covered, _, weight = _score(res, truth)
+    assert weight[covered].sum() / weight.sum() >= 0.95  # was 0.31
+    assert math.sqrt(np.mean(d[interior] ** 2)) <= 0.03 and np.all(np.abs(d[interior]) <= 0.1)
+    uv = res.uv[res.valid]
+    assert cKDTree(uv).query(uv, k=2)[0][:, 1].min() >= 0.7
+    step = np.diff(s[interior])
+    assert np.all(step > 0) or np.all(step < 0)
+
+
+@pytest.mark.slow  # ~40 s: the paper rig's ray trace compiles
+def test_steep_ends_of_a_ring_gauge_scan_frame_are_extracted():
+    img, truth = render_capture(shape=(1200, 1600), target="plain", line_px=_gauge_line(), seed=1)
+    res = extract_stripe(img)
+    assert res.orientation == "vertical-scan"
+    _check_merged(res, truth, 0.109)
+    own = extract_stripe(img, orientation="vertical-scan")
+    assert 0.10 <= own.steep_left_out_fraction <= 0.17
+
+
+@pytest.mark.parametrize("angle", [0.0, 45.0, 90.0])
+def test_straight_lines_are_unchanged(angle):
+    img, _ = render_capture(
+        shape=(480, 640), target="plain", line_angle_deg=angle, line_offset_px=7.0, seed=3
+    )
+    res = extract_stripe(img)
+    old, _ = _extract_track(img)  # the single scan, as before
+    assert not res.steep.any() and res.steep_left_out_px == 0.0
+    assert res.orientation == old.orientation and len(res) == len(old)
+    np.testing.assert_array_equal(res.uv, old.uv)
+    np.testing.assert_array_equal(res.valid, old.valid)
+    assert res.valid.sum() > 300
+
+
+def test_extract_cli_names_the_steep_part(tmp_path, capsys):
+    import cv2
+
+    img, _ = render_capture(shape=ARC_SHAPE, target="plain", line_px=_arc_line(), seed=1)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "frame_0.png"), img)
+    out = tmp_path / "stripes.json"
+    rc = main(["extract", str(folder), "--out", str(out), "--orientation", "vertical-scan"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    lines = [ln for ln in err.splitlines() if "too steep" in ln]
+    assert len(lines) == 1 and "frame_0.png" in lines[0] and "vertical-scan" in lines[0]
+    rc = main(["extract", str(folder), "--out", str(out), "--overwrite"])
+    captured = capsys.readouterr()
+    assert rc == 0 and "too steep" not in captured.err
+    assert "steep parts of 1 curved line(s)" in captured.out
+
+
+def test_compiled_steep_end_test_equals_numpy(monkeypatch):
+    from scheimflux.stripe import _fast
+    from scheimflux.stripe._steep import _may_turn_steep
+
+    if not _fast.enabled:
+        pytest.skip("Numba not available")
+    seen = set()
+    for angle, curvature in [(0.0, 0.0), (30.0, 0.0), (45.0, 0.004), (80.0, 0.004), (0.0, 0.004)]:
+        img, _ = render_capture(
+            shape=(480, 640), target="plain", line_angle_deg=angle, line_curvature=curvature,
+            seed=2,
+        )  # fmt: skip
+        for orientation in ("auto", "vertical-scan", "horizontal-scan"):
+            res, _ = _extract_track(img, orientation=orientation)
+            fast = _may_turn_steep(res)
+            monkeypatch.setattr(_fast, "enabled", False)
+            assert _may_turn_steep(res) == fast, (angle, curvature, orientation)
+            monkeypatch.setattr(_fast, "enabled", True)
+            seen.add(fast)
+    assert seen == {True, False}
