@@ -95,7 +95,11 @@ def _row(r: dict) -> str:
 # (docs/throughput.md, "Fresh results and the allocator"): one arena (XLA's worker
 # threads otherwise allocate from per-thread arenas, whose large blocks are mmap'ed and
 # unmapped on free), no mmap, no trimming of the heap's top.
-KEPT_MALLOC = {"MALLOC_ARENA_MAX": "1", "MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "4294967295"}
+KEPT_MALLOC = {
+    "MALLOC_ARENA_MAX": "1",
+    "MALLOC_MMAP_MAX_": "0",
+    "MALLOC_TRIM_THRESHOLD_": "4294967295",
+}
 
 
 def _script(name: str, args: list[str], env_extra: dict | None = None) -> str:

@@ -228,7 +228,7 @@ def test_correlated_centres_widen_the_covariance_to_the_spread():
     from scheimflux.metrology._calcov import residual_lag_correlation
 
     rng = np.random.default_rng(7)
-    n, p = 2000, 3
+    n = 2000
     t = np.linspace(-1.0, 1.0, n)  # rows in order along a line: smooth Jacobian columns
     J = np.c_[np.ones(n), t, t * t - 1 / 3]
     # moving average of width 5 (a box filter): ρ_k = (5 − k)/5 for k < 5, τ = 5
