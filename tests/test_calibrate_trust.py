@@ -454,6 +454,29 @@ def test_correlated_neighbouring_centres_are_named(clean):
     assert not any("share their errors" in w for w in clean.quality.warnings)
 
 
+def test_counted_correlation_warning_states_the_tau_of_the_sigma():
+    """Where the σ count the correlation, the warning gives the τ they were raised by
+    (`Diagnostics.correlation_time`, from the residuals standardised by their pixel
+    gains), not its own plain lag estimate: one summary and report, one τ (a colour-JPEG
+    capture said tau = 9.3 on the σ line and tau = 9.03 in the warning)."""
+    from scheimflux.calibrate._quality import correlated_centres_warning
+
+    rng = np.random.default_rng(4)
+    rows, n, rho = 20, 300, 0.8
+    e = rng.standard_normal((rows, n))
+    ar = np.empty_like(e)
+    ar[:, 0] = e[:, 0]
+    for k in range(1, n):
+        ar[:, k] = rho * ar[:, k - 1] + np.sqrt(1 - rho**2) * e[:, k]
+    used = np.ones((rows, n), bool)
+    blocks = [("board stripes", ar, used)]
+    own = re.search(r"tau = ([\d.]+)", correlated_centres_warning(blocks, counted=True))
+    stated = 2.0 * float(own.group(1))  # any τ other than the warning's own estimate
+    said = correlated_centres_warning(blocks, counted=True, taus={"stripes": stated})
+    m = re.search(r"board stripes rho1 = ([\d.]+), tau = ([\d.]+)", said)
+    assert m and float(m.group(2)) == float(f"{stated:.3g}"), said
+
+
 def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
     """The calibration's σ count stripe centres that share their errors along their line
     (tests/test_correlated_sigma.py has the known-answer and Monte Carlo checks). Here, on
@@ -497,6 +520,9 @@ def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
     said = [w for w in cal.quality.warnings if "share their errors" in w]
     assert len(said) == 1 and "counted in the σ of this calibration" in said[0]
     assert "too small" not in said[0]
+    # the τ the σ were raised by, the one the summary's σ line states
+    tau = float(re.search(r"tau = ([\d.]+)", said[0]).group(1))
+    assert tau == float(f"{d.correlation_time['stripes']:.3g}"), (said[0], d.correlation_time)
     doc = trust_entries(cal)["uncertainty"]
     assert doc["correlation_time"] == {"stripes": pytest.approx(d.correlation_time["stripes"])}
     assert doc["std"]["plane.n[2]"] == pytest.approx(d.std_of("plane.n[2]"))

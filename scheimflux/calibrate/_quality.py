@@ -69,9 +69,14 @@ WEAK_BOARD_ANGLE_DEG = 5.0
 # factor by which the variance of a mean of many neighbours exceeds the independent one)
 # are named: the calibration's σ assume independent centres.
 CORRELATION_TAU_WARN = 2.0
+# The residual groups of `metrology._calcov` (`Diagnostics.correlation_time`'s keys) by
+# the names the warning gives them.
+_GROUP = {"board stripes": "stripes"}
 
 
-def correlated_centres_warning(blocks, *, counted: bool = False) -> str | None:
+def correlated_centres_warning(
+    blocks, *, counted: bool = False, taus: dict | None = None
+) -> str | None:
     """A warning when neighbouring centres along the laser lines share their errors.
 
     `blocks`: `(name, residuals (rows, L), used (rows, L))`, each row one line's centres
@@ -81,7 +86,10 @@ def correlated_centres_warning(blocks, *, counted: bool = False) -> str | None:
     and a second ring measured 3 σ off with independent centres. With `counted` (a joint
     solve) the calibration's σ count the correlation ([`fit_diagnostics`][] raises its
     covariance to the sandwich with a banded residual covariance, as the budgets of
-    `measure` and `verify`, `metrology._calcov`), and the warning says so; without it (a
+    `measure` and `verify`, `metrology._calcov`), and the warning says so, with the τ
+    those σ use where `taus` gives them (`{group: τ}` of the group covariance, its
+    residuals standardised by their pixel gains: the plain lag correlations here read a
+    different τ, 9.03 for its 9.30 on a colour-JPEG capture); without it (a
     sequential calibration, or where the joint solve's group covariance finds no lag)
     they count the centres as independent and it says by how much they can be too
     small. Lag correlations as there (`residual_lag_correlation`);
@@ -97,6 +105,8 @@ def correlated_centres_warning(blocks, *, counted: bool = False) -> str | None:
         rho = residual_lag_correlation(np.pad(z, ((0, 0), (0, 1))).reshape(-1))
         tau = 1.0 + 2.0 * float(np.sum(rho))
         if tau >= CORRELATION_TAU_WARN:
+            if counted and taus:
+                tau = float(taus.get(_GROUP.get(name, name), tau))
             parts.append(f"{name} rho1 = {rho[0]:.2f}, tau = {tau:.3g}")
             worst = max(worst, tau)
     if not parts:
@@ -185,8 +195,11 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
 
         # the joint solve's σ count the correlation where its group covariance finds it
         # (cached for fit_diagnostics, which states those σ)
-        if correlated_groups(cal) is not None:
-            note = correlated_centres_warning(lines, counted=True)
+        groups = correlated_groups(cal)
+        if groups is not None:
+            note = correlated_centres_warning(
+                lines, counted=True, taus=dict(groups.correlation_time)
+            )
         warnings.append(note)
     note = axis_warning(calibration_axis_conditioning(cal))
     if note is not None:
