@@ -174,6 +174,69 @@ def test_straight_lines_are_unchanged(angle):
     assert res.valid.sum() > 300
 
 
+def test_a_straight_line_too_steep_for_the_given_orientation_is_reported(tmp_path, capsys):
+    """A straight line at 88 degrees with `orientation="vertical-scan"` (one centre per
+    column) gives no centre; it is reported as left out, all of it (its length as the
+    other scan direction finds it), and the CLI says so instead of "no laser line found",
+    which a blank frame still gets."""
+    import cv2
+
+    shape = (480, 640)
+    img, truth = render_capture(
+        shape=shape, target="plain", line_angle_deg=88.0, line_offset_px=7.0, seed=3
+    )
+    res = extract_stripe(img, orientation="vertical-scan")
+    assert not res.valid.any() and res.steep_left_out_fraction == 1.0
+    # the line crosses the 480 rows at 88 degrees: 480 / sin(88) = 480.3 px, less the
+    # ends that the other scan leaves at the border (a few px each)
+    assert 460.0 <= res.steep_left_out_px <= 481.0, res.steep_left_out_px
+    assert extract_stripe(img, orientation="horizontal-scan").steep_left_out_px == 0.0
+    blank = extract_stripe(np.zeros_like(img), orientation="vertical-scan")
+    assert not blank.valid.any() and blank.steep_left_out_px == 0.0
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "frame_0.png"), img)
+    cv2.imwrite(str(folder / "frame_1.png"), np.zeros_like(img))
+    out = tmp_path / "stripes.json"
+    assert main(["extract", str(folder), "--out", str(out), "--orientation", "vertical-scan"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    steep = [ln for ln in err if "too steep" in ln]
+    none = [ln for ln in err if "no laser line found" in ln]
+    assert len(steep) == 1 and "frame_0.png" in steep[0] and "(100%)" in steep[0], err
+    assert len(none) == 1 and "frame_1.png" in none[0], err
+
+
+def test_line_found_in_a_lower_ranked_colour_gets_its_steep_parts(monkeypatch):
+    """A colour frame whose line the best-scoring colour misses is searched in the other
+    candidates (`_extract_one`); the line found there gets its steep parts too, as on
+    every other path. The first pass is made to miss (a pass over a blank frame, with a
+    wrong colour ranked first), so the line can only come from the candidate loop."""
+    import dataclasses
+
+    from scheimflux.stripe import _extract
+
+    img, truth = render_capture(
+        shape=ARC_SHAPE, target="plain", line_px=_arc_line(), seed=1, colour=True
+    )
+    assert img.ndim == 3
+    real = _extract._extract_track
+    first = {}
+
+    def track(image, **options):
+        if not first:  # the first pass: nothing found, a wrong colour ranked first
+            first["done"] = True
+            empty, retry = real(np.zeros_like(image), **options)
+            assert not empty.valid.any() and retry is not None
+            ranked = _extract.ranked_channels(np.asarray(image, np.float64), 5.0)
+            return empty, dataclasses.replace(retry, ranked=("blue", *ranked))
+        return real(image, **options)
+
+    monkeypatch.setattr(_extract, "_extract_track", track)
+    res = extract_stripe(img)
+    assert first and res.valid.any() and res.steep.any()
+    _check_merged(res, truth, 0.128)
+
+
 def test_extract_cli_names_the_steep_part(tmp_path, capsys):
     import cv2
 

@@ -110,7 +110,11 @@ def run(args: argparse.Namespace) -> int:
             continue
         if not result.valid.any():
             empty.append(name)
-            warn("extract", f"{name}: no laser line found (blank, line-free or saturated frame)")
+            if result.steep_left_out_px <= 0:  # else: the line is there, too steep (below)
+                warn(
+                    "extract",
+                    f"{name}: no laser line found (blank, line-free or saturated frame)",
+                )
         elif result.ambiguous and args.orientation == "auto":
             warn(
                 "extract",

@@ -39,7 +39,7 @@ from ._mask import as_mask
 from ._result import StripeResult
 from ._ridge import is_ambiguous, ridge_offset, scan_direction
 from ._rims import ONE_SIDE_LINE, ONE_SIDE_REACH, bracketed, edge_spread, rim_centres
-from ._steep import follow_steep
+from ._steep import _length as _line_length, follow_steep
 from ._steger import ScanLines, steger_band, steger_full
 from ._stepfit import MAX_SIGMA_C, refit_steps
 
@@ -483,7 +483,7 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
         for ch in retry.ranked[1:]:
             res_c, retry_c = _extract_track(image, **{**options, "channel": ch})
             if res_c.valid.any():
-                return res_c
+                return _with_steep(image, res_c, options)
             if retry_c is not None:
                 signals[ch] = retry_c
     for ch, sig in signals.items():
@@ -495,7 +495,23 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
         res_l, _ = _extract_track(image, **{**opts, "orientation": orientation}, track=path)
         if res_l.valid.any():
             return _with_steep(image, res_l, options)
-    return result
+    return _whole_line_too_steep(image, result, options)
+
+
+def _whole_line_too_steep(image: Any, result: StripeResult, options: dict) -> StripeResult:
+    """`result` (no line found with the scan direction asked for) with the length of a
+    line the other scan direction finds reported as left out (`steep_left_out_px`,
+    fraction 1): a straight line steeper than the given orientation can scan is there,
+    not missing. Only for a given orientation (`"auto"` already tried both)."""
+    asked = options.get("orientation", "auto")
+    if asked not in ("vertical-scan", "horizontal-scan"):
+        return result
+    other = "horizontal-scan" if asked == "vertical-scan" else "vertical-scan"
+    found, _ = _extract_track(image, **{**options, "orientation": other})
+    length = _line_length(found.uv[found.valid])
+    if length <= 0.0:
+        return result
+    return dataclasses.replace(result, steep_left_out_px=length, steep_left_out_fraction=1.0)
 
 
 def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult:
