@@ -459,17 +459,12 @@ def test_counted_correlation_warning_states_the_tau_of_the_sigma():
     (`Diagnostics.correlation_time`, from the residuals standardised by their pixel
     gains), not its own plain lag estimate: one summary and report, one τ (a colour-JPEG
     capture said tau = 9.3 on the σ line and tau = 9.03 in the warning)."""
+    from helpers import ar1_noise
+
     from scheimflux.calibrate._quality import correlated_centres_warning
 
-    rng = np.random.default_rng(4)
-    rows, n, rho = 20, 300, 0.8
-    e = rng.standard_normal((rows, n))
-    ar = np.empty_like(e)
-    ar[:, 0] = e[:, 0]
-    for k in range(1, n):
-        ar[:, k] = rho * ar[:, k - 1] + np.sqrt(1 - rho**2) * e[:, k]
-    used = np.ones((rows, n), bool)
-    blocks = [("board stripes", ar, used)]
+    ar = ar1_noise(np.random.default_rng(4), (20, 300), 0.8)
+    blocks = [("board stripes", ar, np.ones(ar.shape, bool))]
     own = re.search(r"tau = ([\d.]+)", correlated_centres_warning(blocks, counted=True))
     stated = 2.0 * float(own.group(1))  # any τ other than the warning's own estimate
     said = correlated_centres_warning(blocks, counted=True, taus={"stripes": stated})
