@@ -472,24 +472,10 @@ def test_counted_correlation_warning_states_the_tau_of_the_sigma():
     assert m and float(m.group(2)) == float(f"{stated:.3g}"), said
 
 
-def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
-    """The calibration's σ count stripe centres that share their errors along their line
-    (tests/test_correlated_sigma.py has the known-answer and Monte Carlo checks). Here, on
-    the ray-traced scene: with its independent noise the covariance is the former
-    max(1, s²)(JᵀJ)⁺ bit for bit (the lag screen finds nothing, no Jacobian is built);
-    with AR(1) noise (ρ = 0.8) along each board stripe it is raised (never lowered in
-    any direction), the board stripes' τ is recorded (estimated from ~1800 residuals:
-    truncated at ρ_k < 0.07, about 8.5 for the 9 of the full sum, minus what the fit
-    absorbs), and the warning, the file and the summary say that the σ include it."""
-    from helpers import ar1_noise, former_fit_covariance
-
-    from scheimflux.calibrate import calibration_summary, trust_entries
-    from scheimflux.calibrate._uncertainty import correlated_groups
-
-    d = fit_diagnostics(clean)
-    assert d.correlation_time == {} and correlated_groups(clean) is None
-    assert np.array_equal(d.covariance, former_fit_covariance(clean.fits["joint"]))
-    assert "correlation_time" in d.to_dict() and not d.to_dict()["correlation_time"]
+@pytest.fixture(scope="module")
+def correlated(scene):
+    """The scene with AR(1) noise (ρ = 0.8) along each board stripe, and its calibration."""
+    from helpers import ar1_noise
 
     obs, truth = scene
     rng = np.random.default_rng(3)
@@ -499,7 +485,30 @@ def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
         )
         for c, s in zip(truth.corners_px, truth.stripe_px)
     ]
-    cal = calibrate(dataclasses.replace(obs, views=views), distortion="none")
+    obs = dataclasses.replace(obs, views=views)
+    return calibrate(obs, distortion="none"), obs
+
+
+def test_sigma_count_correlated_centres_and_nothing_else_changes(correlated, clean):
+    """The calibration's σ count stripe centres that share their errors along their line
+    (tests/test_correlated_sigma.py has the known-answer and Monte Carlo checks). Here, on
+    the ray-traced scene: with its independent noise the covariance is the former
+    max(1, s²)(JᵀJ)⁺ bit for bit (the lag screen finds nothing, no Jacobian is built);
+    with AR(1) noise (ρ = 0.8) along each board stripe it is raised (never lowered in
+    any direction), the board stripes' τ is recorded (estimated from ~1800 residuals:
+    truncated at ρ_k < 0.07, about 8.5 for the 9 of the full sum, minus what the fit
+    absorbs), and the warning, the file and the summary say that the σ include it."""
+    from helpers import former_fit_covariance
+
+    from scheimflux.calibrate import calibration_summary, trust_entries
+    from scheimflux.calibrate._uncertainty import correlated_groups
+
+    d = fit_diagnostics(clean)
+    assert d.correlation_time == {} and correlated_groups(clean) is None
+    assert np.array_equal(d.covariance, former_fit_covariance(clean.fits["joint"]))
+    assert "correlation_time" in d.to_dict() and not d.to_dict()["correlation_time"]
+
+    cal = correlated[0]
     d = fit_diagnostics(cal)
     assert set(d.correlation_time) == {"stripes"}
     assert 4.0 < d.correlation_time["stripes"] < 9.0, d.correlation_time
@@ -522,3 +531,43 @@ def test_sigma_count_correlated_centres_and_nothing_else_changes(scene, clean):
     assert doc["correlation_time"] == {"stripes": pytest.approx(d.correlation_time["stripes"])}
     assert doc["std"]["plane.n[2]"] == pytest.approx(d.std_of("plane.n[2]"))
     assert "σ count the correlation of neighbouring stripe centres" in calibration_summary(cal)
+
+
+def test_a_calibration_read_back_states_the_same_uncertainties(correlated, tmp_path):
+    """Read back from its file with its observations, a calibration states the σ it was
+    written with: `fit_diagnostics` (the file keeps no JᵀJ: assembled from the residuals'
+    Jacobian at the stored optimum; it raised "kept no normal matrix" before), with the
+    correlated stripe centres counted, and so `length_uncertainty` and `point_uncertainty`.
+    `point_uncertainty` states that covariance by default (it used `diagnostics`, which
+    neither floors s² at 1 nor counts the correlation: σ too small by √τ and 1/s)."""
+    from scheimflux.calibrate import length_uncertainty, point_uncertainty
+    from scheimflux.io import read_calibration, write_calibration
+
+    cal, obs = correlated
+    path = tmp_path / "cal.json"
+    write_calibration(path, cal)
+    loaded = read_calibration(path, observations=obs)
+    a, b = fit_diagnostics(cal), fit_diagnostics(loaded)
+    assert b.labels == a.labels and b.n_residuals == a.n_residuals
+    assert b.variance_factor == pytest.approx(a.variance_factor, rel=1e-9)
+    assert set(b.correlation_time) == {"stripes"}
+    assert b.correlation_time["stripes"] == pytest.approx(a.correlation_time["stripes"], rel=1e-6)
+    # the solver's block-assembled JᵀJ against Jᵀ J from forward-mode autodiff: equal to
+    # rounding, which the inverse amplifies by the scaled condition number (~1e5² here)
+    # along the weakest directions; 1e-3 of a σ is far below its statistical meaning
+    np.testing.assert_allclose(b.std, a.std, rtol=1e-3)
+    uv = np.concatenate([v.stripe_px for v in obs.views])
+    ua, ub = uv[:40], uv[-40:]
+    la, lb = length_uncertainty(cal, ua, ub), length_uncertainty(loaded, ua, ub)
+    np.testing.assert_allclose(lb["sigma"], la["sigma"], rtol=1e-3)
+    Xa, sa, _ = point_uncertainty(cal, ua)
+    Xb, sb, _ = point_uncertainty(loaded, ua)
+    np.testing.assert_allclose(Xb, Xa, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sb, sa, rtol=1e-3)
+    # the default is the stated covariance, the one length_uncertainty uses...
+    np.testing.assert_array_equal(sa, point_uncertainty(cal, ua, diag=a)[1])
+    # ...larger than the unfloored, uncorrelated one of `diagnostics` (s² < 1 here)
+    old = point_uncertainty(cal, ua, diag=diagnostics(cal, block="joint"))[1]
+    assert np.all(sa >= old * (1 - 1e-6)) and np.median(sa / old) > 1.2
+    with pytest.raises(ValueError, match="joint problem"):
+        point_uncertainty(cal, ua, diag=diagnostics(cal, block="camera"))

@@ -4,8 +4,9 @@ The file holds the solution (camera, laser plane, stage, board poses), the froze
 the noise weights and the solve statistics. Given the observations it was computed from,
 that is all the in-memory `Calibration` needs: the residual arrays (`data`) are rebuilt
 with the same weights, and each solve (`fits`) is restored at the stored optimum with its
-free parameters. `diagnostics`, `point_uncertainty`, `residual_function` and `refine`
-then work on a calibration read back exactly as on the one that was written.
+free parameters. `diagnostics`, `fit_diagnostics`, `point_uncertainty`,
+`length_uncertainty`, `residual_function` and `refine` then work on a calibration read
+back exactly as on the one that was written.
 
 What the file does not keep: the intermediate optimum of the camera-only solve of a
 joint calibration (its restored `fits["camera"]` sits at the final camera and poses), and

@@ -38,8 +38,9 @@ from ._covariance import (
     residual_function,
     std_and_correlation,
 )
+from ._model import CalibrationData
 from ._result import Calibration
-from ._solve import RANK_RTOL, Fit, split
+from ._solve import RANK_RTOL, Fit, jacobian, parameter_labels, split
 
 __all__ = ["fit_diagnostics", "length_uncertainty", "point_uncertainty", "raise_covariance"]
 
@@ -110,7 +111,7 @@ def correlated_groups(cal: Calibration):
     fit = (getattr(cal, "fits", None) or {}).get("joint")
     if (
         fit is None
-        or getattr(fit, "normal_matrix", None) is None
+        or not isinstance(getattr(cal, "data", None), CalibrationData)
         or getattr(cal.params, "plane", None) is None
     ):
         return None
@@ -132,11 +133,34 @@ def correlated_groups(cal: Calibration):
     return out
 
 
+def _normal_equations(cal: Calibration, block: str, fit: Fit):
+    """`JᵀJ` of a solve over its free parameters (physical units), their labels and the
+    number of observations (residuals of non-zero weight).
+
+    The solver's own, kept at its optimum; a solve read back from a file keeps none, and
+    there it is assembled from the Jacobian of the residuals at the stored optimum (the
+    same matrix to rounding: the file holds the optimum, the free set and the weights)."""
+    if fit.normal_matrix is not None:
+        H = np.asarray(fit.normal_matrix, dtype=np.float64)
+        return H, list(fit.labels), int(fit.n_observations)
+    if not isinstance(getattr(cal, "data", None), CalibrationData):
+        raise ValueError(
+            f"the {block} solve kept no normal matrix and the calibration holds no "
+            "observations: read it with read_calibration(path, observations=OBS)"
+        )
+    fn, params, spec = residual_function(cal, block)
+    J = np.asarray(jacobian(fn, params, cal.data, spec), dtype=np.float64)
+    n = int(np.count_nonzero(np.asarray(fit.residuals)))
+    return J.T @ J, parameter_labels(params, spec), n
+
+
 def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     """σ, correlations and identifiability of the final solve, from its `JᵀJ`.
 
     The same statistics as [`diagnostics`][] (which differentiates the residuals anew),
-    computed from the normal matrix the solver kept at its optimum. A direction whose
+    computed from the normal matrix the solver kept at its optimum (for a calibration
+    read back from its file with its observations, which keeps none, from the residuals'
+    Jacobian at the stored optimum). A direction whose
     eigenvalue of the column-scaled `JᵀJ` is below `RANK_RTOL` × the largest is reported
     (with the `top` parameters in it) and left out of Σ.
 
@@ -152,10 +176,7 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     are the square roots of the scaled eigenvalues).
     """
     block, fit = _final_fit(cal)
-    if fit.normal_matrix is None:
-        raise ValueError(f"the {block} solve kept no normal matrix")
-    H = np.asarray(fit.normal_matrix, dtype=np.float64)
-    labels = list(fit.labels)
+    H, labels, n = _normal_equations(cal, block, fit)
     d = np.sqrt(np.clip(np.diag(H), 0.0, None))
     d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
     lam, V = np.linalg.eigh(H * np.outer(d, d))
@@ -163,7 +184,7 @@ def fit_diagnostics(cal: Calibration, *, top: int = 4) -> Diagnostics:
     big = max(float(lam[0]), 1e-300) if lam.size else 1.0
     keep = lam > RANK_RTOL * big
     inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
-    n, p = int(fit.n_observations), len(labels)
+    p = len(labels)
     s2 = 2.0 * fit.cost / (n - p) if n > p else math.nan
     # Σ = max(1, s²) (JᵀJ)⁺: the stated σ unless the residuals show more noise. s² < 1
     # says only that some block's σ was stated too large, not that every parameter is
@@ -252,10 +273,16 @@ def point_uncertainty(
     The points are `X(θ, uv)` (ray of each pixel ∩ laser plane, then the stage for
     `frame="measurement"`); θ are the free camera and plane parameters (and the stage
     and eccentricity for the measurement frame). With `Σ_θ` their marginal covariance
-    from the joint problem ([`residual_function`][] with `block="joint"`, so the board
-    poses' uncertainty is included) and `J_X = ∂X/∂θ` (autodiff), `cov = J_X Σ_θ J_Xᵀ`.
-    This is the calibration error of each point, common to every scan; pixel noise of
-    the measured stripe itself adds on top.
+    from the joint problem (board poses' uncertainty included) and `J_X = ∂X/∂θ`
+    (autodiff), `cov = J_X Σ_θ J_Xᵀ`. This is the calibration error of each point,
+    common to every scan; pixel noise of the measured stripe itself adds on top.
+
+    `Σ_θ` is by default the calibration's stated covariance, the one its file, summary
+    and [`length_uncertainty`][] use: [`fit_diagnostics`][] of the joint solve
+    (`max(1, s²)(JᵀJ)⁺`, raised where the stripe centres along a line share their
+    errors). A sequential calibration (`joint=False`) has no joint solve: there it is
+    [`diagnostics`][]`(cal, block="joint")`, the joint problem linearised at the
+    sequential estimate with the camera solve's s².
 
     The σ is relative to the **camera frame** (its origin at the image-side principal
     point): it is dominated by the frame's poorly determined placement along the optical
@@ -267,7 +294,8 @@ def point_uncertainty(
     - `uv`: stripe pixels `(N, 2)`.
     - `frame`: `"camera"` or `"measurement"` (needs a stage and `frame_index`: an
       integer or `(N,)`).
-    - `diag`: a precomputed `diagnostics(cal, block="joint")`.
+    - `diag`: precomputed diagnostics of the joint problem (`fit_diagnostics(cal)` of a
+      joint calibration, or `diagnostics(cal, block="joint")`).
 
     **Returns:** `(points (N, 3), sigma (N, 3), cov (N, 3, 3))` in mm.
     """
@@ -286,9 +314,12 @@ def point_uncertainty(
         fi = jnp.zeros(uv.shape[:1], dtype=jnp.float64)
         prefixes = ("camera.", "plane.")
     if diag is None:
-        diag = diagnostics(cal, block="joint")
-    elif diag.block != "joint":
-        raise ValueError("point_uncertainty needs diagnostics(cal, block='joint')")
+        diag = fit_diagnostics(cal) if "joint" in cal.fits else diagnostics(cal, block="joint")
+    if diag.block != "joint" or list(diag.labels) != parameter_labels(params, spec):
+        raise ValueError(
+            "point_uncertainty needs the diagnostics of this calibration's joint problem "
+            "(fit_diagnostics(cal) or diagnostics(cal, block='joint'))"
+        )
     idx = diag.select(prefixes)
     X, JX = _points_and_jacobian(params, spec, jnp.asarray(idx), uv, fi, frame)
     JX = np.asarray(JX)
