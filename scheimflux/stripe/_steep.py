@@ -423,21 +423,20 @@ def follow_steep(
         passes += 1
         band = _band(end, shape, pad)
         other = extract_other(_OTHER[p.orientation], band)
-        best = None
+        # the pieces that meet the end's stretch, the one meeting it first tried first
+        # (a fragment that meets it but runs off it gives way to the next)
         found = _pieces(other, primary=False)
-        for q in found:
-            live = q.uv[q.alive]
-            dist, _ = cKDTree(live).query(p.uv[end.stretch])
+        meets = []
+        for i, q in enumerate(found):
+            dist, _ = cKDTree(q.uv[q.alive]).query(p.uv[end.stretch])
             hit = np.flatnonzero(dist <= JOIN_PX)
-            if hit.size and (best is None or hit[0] < best[0]):
-                best = (int(hit[0]), q)
-        if best is not None:
-            q = best[1]
-            if not _join(end, q):
-                continue
-        else:
-            # no piece overlaps the end (it stopped short of 45 degrees, where the other
-            # scan's centres do not reach yet): one that starts just ahead of it
+            if hit.size:
+                meets.append((int(hit[0]), i))
+        joined = [found[i] for _, i in sorted(meets)]
+        q = next((q for q in joined if _join(end, q)), None)
+        if q is None:
+            # none continues the end there (it stopped short of 45 degrees, where the
+            # other scan's centres do not reach yet): one that starts just ahead of it
             q = _across_gap(end, found, gap)
             if q is None:
                 continue
