@@ -5,15 +5,18 @@ line turns towards the scan lines' own direction (a ring gauge's arc near its en
 parabola's arms), the profile along a scan line widens as 1 / cos of the angle and the
 centres are refused (steeper than ~68 degrees on the ring-gauge arcs of a rotary-table
 scan: 11-13 % of the arc was lost without a word). Here each linked piece's ends are
-read: an end steeper than `STEEP_END_DEG` to the scan-perpendicular, inside the image,
-is followed by a pass with the other scan direction over the scan lines beyond the point
-where the piece turned past 45 degrees (a band; a second pass only where a steep end
-exists). A piece of the other pass that meets the end (a centre within `JOIN_PX` of its
-centres from that point on) continues the line: the two are cut at one point, the first
-centre past 45 degrees that the other pass also covers, and each keeps its own side
-(the scan more perpendicular to the line there), so no point of the line is counted
-twice. The new piece's far end is followed the same way (a U-shaped line: one arm, its
-bottom, the other arm), at most `MAX_PASSES` passes per image.
+read: an end steeper than `STEEP_END_DEG` to the scan-perpendicular, or turning towards
+it (`TURN_DEG`, `BEND_DEG`: a scan can lose a bending line short of 45 degrees), inside
+the image, is followed by a pass with the other scan direction over the scan lines
+beyond the point where the piece turned past 45 degrees (a band; a second pass only
+where a steep end exists). A piece of the other pass that meets the end (a centre within
+`JOIN_PX` of its centres from that point on) continues the line: the two are cut at one
+point, the first centre past 45 degrees that the other pass also covers, and each keeps
+its own side (the scan more perpendicular to the line there), so no point of the line is
+counted twice; an end that stopped short of where the other pass's centres begin is
+continued by a piece starting within `GAP_WIDTHS` line widths ahead of it. The new
+piece's far end is followed the same way (a U-shaped line: one arm, its bottom, the
+other arm), at most `MAX_PASSES` passes per image.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ _BACK = 16
 # (a dim line on a print: windows 1.5 degrees apart). Measured on every board scene of
 # tests/test_stripe_capture.py and tests/test_capture.py: at most 1.7 degrees per 16
 # centres (a line of curvature 0.002 / px at 33 degrees), 1.5 over 10 on a short
-# piece; the ends this rule is for: 2.8-3.4 (the U), 2.5-8 (arcs seen by the scan
+# piece; the ends this rule is for: 2.8-3.2 (the U), 2.4-8.8 (arcs seen by the scan
 # that meets both their sides).
 BEND_FROM_DEG = 25.0
 BEND_DEG = 2.25
