@@ -526,7 +526,15 @@ def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult
         min_segment = options.get("min_segment")
         min_pts = max(8, int(round(2 * width))) if min_segment is None else int(min_segment)
         opts = {**options, "orientation": orientation, "channel": result.channel}
-        return _extract_track(image, **opts, min_line=min_pts, band=band)[0]
+        found, retry = _extract_track(image, **opts, min_line=min_pts, band=band)
+        if found.valid.any() or retry is None:
+            return found
+        # no coarse track in the band (a dim line): the longest narrow ridge there, as
+        # `_extract_one` tries for the whole frame
+        ridge = long_ridge_track(retry.img, retry.width, retry.noise, retry.roi, orientation)
+        if ridge is None:
+            return found
+        return _extract_track(image, **opts, min_line=min_pts, band=band, track=ridge[1])[0]
 
     merge = options.get("orientation", "auto") == "auto"
     return follow_steep(result, shape, extract_other, merge)

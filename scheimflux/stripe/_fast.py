@@ -1426,12 +1426,18 @@ def _window_angle(uv, col, idx, w0, n_fit):
 
 
 @_jit
-def steep_end(uv, col, valid, segment, n_fit, n_back, steep_deg, turn_from_deg, turn_deg):
+def steep_end(
+    uv, col, valid, segment, n_fit, n_back, steep_deg, turn_from_deg, turn_deg, n_span,
+    n_min, bend_from_deg, bend_deg,
+):  # fmt: skip
     """`_steep._may_turn_steep` (its NumPy reference) in one pass: whether a run of one
     `segment` label among the valid centres, `n_fit` long or longer, ends (at either
     end) with its last `n_fit` centres steeper than `steep_deg` to the scan axis, or
     steeper than `turn_from_deg` and turned by more than `turn_deg` since the `n_fit`
-    centres `n_back` further in (runs of `n_fit + n_back` or more)."""
+    centres `n_back` further in (runs of `n_fit + n_back` or more), or steeper than
+    `bend_from_deg` and turned by more than `bend_deg` over min(K, `n_back`) centres by
+    the straight line fitted to the window's angle taken 0..K centres further in (K =
+    the run's length less `n_fit`, at most `n_span`, at least `n_min`; `_steep._bend`)."""
     n = valid.shape[0]
     idx = np.empty(n, np.int64)
     m = 0
@@ -1445,6 +1451,7 @@ def steep_end(uv, col, valid, segment, n_fit, n_back, steep_deg, turn_from_deg, 
             continue
         run = k - start
         if run >= n_fit:
+            span = min(run - n_fit, n_span)
             for first_end in (True, False):
                 w0 = start if first_end else k - n_fit
                 a0 = _window_angle(uv, col, idx, w0, n_fit)
@@ -1453,6 +1460,15 @@ def steep_end(uv, col, valid, segment, n_fit, n_back, steep_deg, turn_from_deg, 
                 if run >= n_fit + n_back and a0 > turn_from_deg:
                     w1 = w0 + n_back if first_end else w0 - n_back
                     if a0 - _window_angle(uv, col, idx, w1, n_fit) > turn_deg:
+                        return True
+                if span >= n_min and a0 > bend_from_deg:
+                    kbar = span / 2.0
+                    num = 0.0
+                    for t in range(span + 1):
+                        w = w0 + t if first_end else w0 - t
+                        num += (t - kbar) * _window_angle(uv, col, idx, w, n_fit)
+                    den = span * (span + 1.0) * (span + 2.0) / 12.0
+                    if -num / den * min(span, n_back) > bend_deg:
                         return True
         start = k
     return False

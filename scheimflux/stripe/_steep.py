@@ -5,15 +5,18 @@ line turns towards the scan lines' own direction (a ring gauge's arc near its en
 parabola's arms), the profile along a scan line widens as 1 / cos of the angle and the
 centres are refused (steeper than ~68 degrees on the ring-gauge arcs of a rotary-table
 scan: 11-13 % of the arc was lost without a word). Here each linked piece's ends are
-read: an end steeper than `STEEP_END_DEG` to the scan-perpendicular, inside the image,
-is followed by a pass with the other scan direction over the scan lines beyond the point
-where the piece turned past 45 degrees (a band; a second pass only where a steep end
-exists). A piece of the other pass that meets the end (a centre within `JOIN_PX` of its
-centres from that point on) continues the line: the two are cut at one point, the first
-centre past 45 degrees that the other pass also covers, and each keeps its own side
-(the scan more perpendicular to the line there), so no point of the line is counted
-twice. The new piece's far end is followed the same way (a U-shaped line: one arm, its
-bottom, the other arm), at most `MAX_PASSES` passes per image.
+read: an end steeper than `STEEP_END_DEG` to the scan-perpendicular, or turning towards
+it (`TURN_DEG`, `BEND_DEG`: a scan can lose a bending line short of 45 degrees), inside
+the image, is followed by a pass with the other scan direction over the scan lines
+beyond the point where the piece turned past 45 degrees (a band; a second pass only
+where a steep end exists). A piece of the other pass that meets the end (a centre within
+`JOIN_PX` of its centres from that point on) continues the line: the two are cut at one
+point, the first centre past 45 degrees that the other pass also covers, and each keeps
+its own side (the scan more perpendicular to the line there), so no point of the line is
+counted twice; an end that stopped short of where the other pass's centres begin is
+continued by a piece starting within `GAP_WIDTHS` line widths ahead of it. The new
+piece's far end is followed the same way (a U-shaped line: one arm, its bottom, the
+other arm), at most `MAX_PASSES` passes per image.
 """
 
 from __future__ import annotations
@@ -43,6 +46,22 @@ TURN_FROM_DEG = 35.0
 TURN_DEG = 3.0
 _END_FIT = 8
 _BACK = 16
+# ... or steeper than BEND_FROM_DEG and bending: the angle of the end window taken 0, 1,
+# ..., K centres further in (K = the piece's length less _END_FIT, at most _BEND_SPAN, at
+# least _BEND_MIN), fitted by a straight line against K, turns by more than BEND_DEG
+# over min(K, _BACK) centres towards the end. The fit over up to 25 windows reads a
+# steady bend that the two-window turn above misses where the scan stops early (a U
+# whose arms every scan line meets: its centres stop at ~35 degrees, 2.8 degrees turned
+# over 16) or the piece is short (8-23 centres), and averages out a wavy line's noise
+# (a dim line on a print: windows 1.5 degrees apart). Measured on every board scene of
+# tests/test_stripe_capture.py and tests/test_capture.py: at most 1.7 degrees per 16
+# centres (a line of curvature 0.002 / px at 33 degrees), 1.5 over 10 on a short
+# piece; the ends this rule is for: 2.8-3.2 (the U), 2.4-8.8 (arcs seen by the scan
+# that meets both their sides).
+BEND_FROM_DEG = 25.0
+BEND_DEG = 2.25
+_BEND_SPAN = 24
+_BEND_MIN = 8
 # Largest distance (px) between centres of the two scans that see the same stretch of
 # line (their spacing along the line is at most 1.41 px at 45 degrees, each within
 # ~0.1 px of the line).
@@ -51,6 +70,11 @@ JOIN_PX = 1.5
 JOIN_DEG = 20.0
 # Centres of two pieces closer than this (px) are the same point of the line.
 _SAME_PX = 0.7
+# An end that stops short of 45 degrees (the bend rule) is not reached by the other
+# scan's centres either (they stop at ~50-56 degrees to its own scan-perpendicular on a
+# bend): a piece of the other pass that starts within this many line widths ahead of
+# the end, along its tangent, continues it across the gap.
+GAP_WIDTHS = 3.0
 # Passes of the other scan direction per image, at most.
 MAX_PASSES = 6
 # Consecutive centres farther apart than this (px) are a gap in the line's length.
@@ -175,6 +199,39 @@ def _join(end: _End, q: _Piece) -> bool:
     return True
 
 
+def _across_gap(end: _End, found: list[_Piece], gap: float) -> _Piece | None:
+    """The piece of `found` that continues `end` across a gap: its centre nearest the
+    end's last one within `gap` px, ahead of it along the end's tangent (within
+    `JOIN_DEG` of it) and running the same way there (within `JOIN_DEG`); it keeps its
+    centres more than 0.75 px ahead of the end (3 at least). None where there is none."""
+    p = end.piece
+    j = int(end.stretch[-1])
+    e = p.uv[j]
+    t = _tangent(p, j, end.side)
+    best = None
+    for q in found:
+        live = np.flatnonzero(q.alive)
+        if live.size < 3:
+            continue
+        d = q.uv[live] - e
+        r = np.hypot(d[:, 0], d[:, 1])
+        k = int(np.argmin(r))
+        if r[k] > gap or (best is not None and r[k] >= best[0]):
+            continue
+        cos = math.cos(math.radians(JOIN_DEG))
+        if float(d[k] @ t) < cos * r[k] or abs(float(t @ _tangent(q, int(live[k]), 1))) < cos:
+            continue
+        best = (float(r[k]), q)
+    if best is None:
+        return None
+    q = best[1]
+    ahead = q.alive & ((q.uv - e) @ t > 0.75)
+    if ahead.sum() < 3:
+        return None
+    q.alive = ahead
+    return q
+
+
 def _band(end: _End, shape: tuple[int, int], pad: int) -> np.ndarray:
     """The image beyond the end's cut, in its piece's scan lines (a band of columns
     for a vertical scan)."""
@@ -227,13 +284,33 @@ def _angle(x: np.ndarray, y: np.ndarray) -> np.ndarray | np.floating:
     return np.degrees(np.arctan2(num, den))
 
 
+def _bend(angles: np.ndarray, span: np.ndarray) -> np.ndarray:
+    """Degrees turned towards the end over min(K, `_BACK`) centres, K = `span`: the
+    slope of a straight line fitted to `angles[..., k]` (the end window's angle taken k
+    centres further in) against k = 0..K, sign flipped (the angle grows towards the
+    end). `angles` (..., `_BEND_SPAN` + 1), entries past K ignored; 0 where K <
+    `_BEND_MIN`."""
+    k = np.arange(_BEND_SPAN + 1, dtype=np.float64)
+    kk = span[..., None].astype(np.float64)
+    use = k <= kk
+    kbar = kk / 2.0
+    num = np.where(use, (k - kbar) * angles, 0.0).sum(axis=-1)
+    den = np.maximum(span * (span + 1.0) * (span + 2.0) / 12.0, 1.0)
+    turn = -num / den * np.minimum(span, _BACK)
+    return np.where(span >= _BEND_MIN, turn, 0.0)
+
+
 def _steep_angles(
-    a0: np.ndarray | np.floating, a1: np.ndarray | np.floating, back: np.ndarray | np.bool_
+    a0: np.ndarray | np.floating,
+    a1: np.ndarray | np.floating,
+    back: np.ndarray | np.bool_,
+    bend: np.ndarray | np.floating,
 ) -> np.ndarray | np.bool_:
-    """The steep-end rule on the end window's angle `a0` and, where `back`, the angle
-    `a1` of the window `_BACK` centres before it."""
+    """The steep-end rule on the end window's angle `a0`, where `back` the angle `a1` of
+    the window `_BACK` centres before it, and the fitted turn `bend` (`_bend`)."""
     turn = back & (a0 > TURN_FROM_DEG) & (a0 - a1 > TURN_DEG)
-    return (a0 > STEEP_END_DEG) | turn
+    bends = (a0 > BEND_FROM_DEG) & (bend > BEND_DEG)
+    return (a0 > STEEP_END_DEG) | turn | bends
 
 
 def _turns_steep(x: np.ndarray, y: np.ndarray) -> bool:
@@ -243,9 +320,13 @@ def _turns_steep(x: np.ndarray, y: np.ndarray) -> bool:
         return False
     end = np.arange(n - _END_FIT, n)
     back = n >= _END_FIT + _BACK
-    a0 = _angle(x[end], y[end])
-    a1 = _angle(x[end - _BACK], y[end - _BACK]) if back else a0
-    return bool(_steep_angles(a0, a1, np.bool_(back)))
+    span = min(n - _END_FIT, _BEND_SPAN)
+    ends = end - np.minimum(np.arange(_BEND_SPAN + 1), span)[:, None]
+    angles = _angle(x[ends], y[ends])
+    a0 = angles[0]
+    a1 = angles[_BACK] if back else a0
+    bend = _bend(angles, np.asarray(span))
+    return bool(_steep_angles(a0, a1, np.bool_(back), bend))
 
 
 def _may_turn_steep(result: StripeResult) -> bool:
@@ -256,7 +337,8 @@ def _may_turn_steep(result: StripeResult) -> bool:
     if _fast.enabled:
         return bool(_fast.steep_end(
             result.uv, col, result.valid, result.segment, _END_FIT, _BACK,
-            STEEP_END_DEG, TURN_FROM_DEG, TURN_DEG,
+            STEEP_END_DEG, TURN_FROM_DEG, TURN_DEG, _BEND_SPAN, _BEND_MIN,
+            BEND_FROM_DEG, BEND_DEG,
         ))  # fmt: skip
     a = np.flatnonzero(result.valid)
     if a.size < _END_FIT:
@@ -268,15 +350,20 @@ def _may_turn_steep(result: StripeResult) -> bool:
     runs = stop - first
     keep = runs >= _END_FIT
     first, stop, runs = first[keep], stop[keep], runs[keep]
-    # the windows at each run's start (read backwards) and end, and _BACK further in
+    # the windows at each run's start (read backwards) and end, and 0.._BEND_SPAN
+    # centres further in (up to the run's other end)
     step = np.arange(_END_FIT)
     end = np.concatenate((first[:, None] + _END_FIT - 1 - step, stop[:, None] - _END_FIT + step))
-    inward = np.concatenate((np.full(first.size, _BACK), np.full(stop.size, -_BACK)))
-    back = np.concatenate((runs, runs)) >= _END_FIT + _BACK
-    there = np.clip(end + inward[:, None], 0, a.size - 1)
-    a0 = _angle(x[end], y[end])
-    a1 = _angle(x[there], y[there])
-    return bool(np.any(_steep_angles(a0, a1, back)))
+    inward = np.concatenate((np.ones(first.size, np.intp), -np.ones(stop.size, np.intp)))
+    n_run = np.concatenate((runs, runs))
+    back = n_run >= _END_FIT + _BACK
+    span = np.minimum(n_run - _END_FIT, _BEND_SPAN)
+    k = np.minimum(np.arange(_BEND_SPAN + 1), span[:, None])  # (ends, _BEND_SPAN + 1)
+    there = end[:, None, :] + (inward[:, None] * k)[:, :, None]
+    angles = _angle(x[there], y[there])
+    a0 = angles[:, 0]
+    a1 = angles[:, _BACK]
+    return bool(np.any(_steep_angles(a0, a1, back, _bend(angles, span))))
 
 
 def follow_steep(
@@ -295,6 +382,7 @@ def follow_steep(
     width = float(np.median(widths)) if widths.size else 5.0
     border = width + 3.0
     pad = int(math.ceil(3.0 * width)) + 4
+    gap = GAP_WIDTHS * width
     # (the longest first: a fragment of the steep part is judged after the line's
     # steep parts are found from its main pieces)
     primary = sorted(_pieces(result, primary=True), key=lambda p: -p.idx.size)
@@ -338,18 +426,23 @@ def follow_steep(
         passes += 1
         band = _band(end, shape, pad)
         other = extract_other(_OTHER[p.orientation], band)
-        best = None
-        for q in _pieces(other, primary=False):
-            live = q.uv[q.alive]
-            dist, _ = cKDTree(live).query(p.uv[end.stretch])
+        # the pieces that meet the end's stretch, the one meeting it first tried first
+        # (a fragment that meets it but runs off it gives way to the next)
+        found = _pieces(other, primary=False)
+        meets = []
+        for i, q in enumerate(found):
+            dist, _ = cKDTree(q.uv[q.alive]).query(p.uv[end.stretch])
             hit = np.flatnonzero(dist <= JOIN_PX)
-            if hit.size and (best is None or hit[0] < best[0]):
-                best = (int(hit[0]), q)
-        if best is None:
-            continue
-        q = best[1]
-        if not _join(end, q):
-            continue
+            if hit.size:
+                meets.append((int(hit[0]), i))
+        joined = [found[i] for _, i in sorted(meets)]
+        q = next((q for q in joined if _join(end, q)), None)
+        if q is None:
+            # none continues the end there (it stopped short of 45 degrees, where the
+            # other scan's centres do not reach yet): one that starts just ahead of it
+            q = _across_gap(end, found, gap)
+            if q is None:
+                continue
         j = end.stretch[np.flatnonzero(p.alive[end.stretch])[-1]]
         q_side = _near_end(q, p.uv[j])
         p.children.append((side, q, q_side))
