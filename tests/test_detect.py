@@ -106,7 +106,10 @@ def test_mirrored_image(cam):
 def test_cli_detect(tmp_path, cam, capsys):
     from scheimflux.simulate._render_stripe import render_stripe
 
-    images, scan = tmp_path / "images", tmp_path / "scan"
+    # the scan folder inside the capture folder, as `simulate --images` writes it: read
+    # as the scan, not listed among the names ignored
+    images = tmp_path / "images"
+    scan = images / "scan"
     images.mkdir()
     scan.mkdir()
     truths = []
@@ -139,7 +142,9 @@ def test_cli_detect(tmp_path, cam, capsys):
     assert "view 2 (view_2_board.png, view_2_stripe.png) dropped: view_2_board.png cannot" in err
     assert "view 10 (view_10_board.png) dropped: image is blank" in err
     assert "view 11 (view_11_stripe.png) dropped: no board image" in err
-    assert "view 1: no stripe image" in err and "notes.txt" in err
+    assert "view 1: no stripe image" in err
+    assert "ignored 1 name(s) not like a capture" in err and "notes.txt" in err
+    assert "scan/" not in err
     assert "found in 2 of 5 view(s)" in cap.out and "dropped 3 view(s)" in cap.out
 
     obs = read_observations(out)

@@ -99,9 +99,14 @@ def detect_session(
         report.notes.append(m)
         say(m)
 
-    if report.ignored:
-        shown = ", ".join(report.ignored[:5]) + (" ..." if len(report.ignored) > 5 else "")
-        note(f"ignored {len(report.ignored)} name(s) not like a capture "
+    # the scan and stage-target folders given may lie inside the capture folder (as
+    # `scheimflux simulate --images` writes them): read, not ignored
+    given = {os.path.realpath(p) for p in (scan, stage_target) if p is not None}
+    ignored = [n for n in report.ignored
+               if os.path.realpath(os.path.join(folder, n.rstrip("/"))) not in given]  # fmt: skip
+    if ignored:
+        shown = ", ".join(ignored[:5]) + (" ..." if len(ignored) > 5 else "")
+        note(f"ignored {len(ignored)} name(s) not like a capture "
              f"(view_<k>[_board|_stripe|_off].<ext>): {shown}")
     if scan is not None:
         stage = extract_scan(
