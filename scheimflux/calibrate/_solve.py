@@ -337,6 +337,56 @@ def jacobian(fn: Callable, params, data, spec):
     return _jacobian(x0, (fn, unravel, static, data))
 
 
+def observed_pixels(data) -> tuple:
+    """The observed pixel arrays of the residual data (`CalibrationData`): corners,
+    stripe and gauge pixels, and the table target's corners and stripe where present."""
+    out = (data.corners, data.stripe, data.gauge)
+    if getattr(data, "table", None) is not None:
+        out += (data.table.corners, data.table.stripe)
+    return out
+
+
+def pixel_gains(fn: Callable, params, data):
+    """`|∂r_i/∂p_i|²` of every residual of `fn(params, data)` for its own observed pixel
+    (traceable; see `metrology.pixel_noise_gains`): every residual of the joint problems
+    depends on one observed pixel, so one JVP with every u tangent 1 gives each
+    residual's own `∂r_i/∂u_i`, one more its `∂r_i/∂v_i`."""
+    pix = observed_pixels(data)
+
+    def res(p):
+        return fn(params, eqx.tree_at(observed_pixels, data, p))
+
+    out = jnp.zeros(())
+    for axis in (0, 1):
+        tan = tuple(jnp.zeros_like(p).at[..., axis].set(1.0) for p in pix)
+        out = out + jax.jvp(res, (pix,), (tan,))[1] ** 2
+    return out
+
+
+@exported_jit
+def _linearised(x, args, gains: bool):
+    fn, unravel, static, data = args
+    J, r = jax.jacfwd(lambda v: (_unscaled(v, args),) * 2, has_aux=True)(x)
+    a = pixel_gains(fn, eqx.combine(unravel(x), static), data) if gains else None
+    return r, J, a
+
+
+def linearised(fn: Callable, params, data, spec, *, pixel_gains: bool = False):
+    """`(r, J, a)`: the residuals `fn(params, data)`, their Jacobian w.r.t. the free
+    parameters (physical units) and, with `pixel_gains`, each residual's gain from the
+    noise of its own observed pixel, `a_i = |∂r_i/∂p_i|²` (else None; see
+    `metrology.pixel_noise_gains`), as NumPy float64 arrays.
+
+    One exported program (a one-off: compiled without XLA's expensive passes), so a new
+    process with the same shapes neither traces nor compiles it again; the residuals are
+    not evaluated op by op (seconds for the joint residuals).
+    """
+    x0, unravel, static = split(params, spec)
+    r, J, a = _linearised(x0, (fn, unravel, static, data), bool(pixel_gains))
+    f64 = lambda v: None if v is None else np.asarray(v, dtype=np.float64)  # noqa: E731
+    return f64(r), f64(J), f64(a)
+
+
 def levenberg_marquardt(structure: BlockStructure, rtol: float, atol: float, mask=None):
     """Levenberg–Marquardt with the block normal-equations solver
     ([`BlockLevenbergMarquardt`][], on optimistix's public extension points).

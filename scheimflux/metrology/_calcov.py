@@ -140,20 +140,18 @@ def group_covariance(
     """
     from ..calibrate import residual_function
     from ..calibrate._covariance import NULL_RTOL
-    from ..calibrate._solve import jacobian
+    from ..calibrate._solve import linearised
 
     rtol = NULL_RTOL if rtol is None else rtol
     if cal.params.plane is None:
         raise ValueError("the calibration has no laser plane: no joint covariance")
+    if weighting not in ("pixels", "groups"):
+        raise ValueError(f"weighting must be 'pixels' or 'groups', got {weighting!r}")
     fn, params, spec = residual_function(cal, "joint")
-    J = np.asarray(jacobian(fn, params, cal.data, spec), dtype=np.float64)
-    r = np.asarray(fn(params, cal.data), dtype=np.float64)
+    r, J, gains = linearised(fn, params, cal.data, spec, pixel_gains=weighting == "pixels")
     sizes = _group_sizes(cal, params)
     if sum(sizes) != len(r):
         raise ValueError("the residual groups do not add up to the joint residual vector")
-    if weighting not in ("pixels", "groups"):
-        raise ValueError(f"weighting must be 'pixels' or 'groups', got {weighting!r}")
-    gains = pixel_noise_gains(fn, params, cal.data) if weighting == "pixels" else None
     names = GROUPS[: len(sizes)]
     bounds = np.cumsum([0] + list(sizes))
     a = np.ones(len(r)) if gains is None else gains
@@ -214,33 +212,14 @@ def pixel_noise_gains(fn, params, data) -> np.ndarray:
     Every residual of the joint problems depends on the pixel of one observation only (a
     corner's u or v, one stripe or gauge pixel), so `∂r/∂u` of all pixels at once (one
     JVP with every u tangent set to 1) is each residual's own `∂r_i/∂u_i`, and likewise
-    for v: two forward passes, no `n × 2n` Jacobian.
+    for v: two forward passes, no `n × 2n` Jacobian. ([`group_covariance`][] gets them
+    in the same program as the residuals' Jacobian, `calibrate._solve.linearised`.)
     """
     import equinox as eqx
-    import jax
-    import jax.numpy as jnp
 
-    getters = [lambda d: d.corners, lambda d: d.stripe, lambda d: d.gauge]
-    if getattr(data, "table", None) is not None:
-        getters += [lambda d: d.table.corners, lambda d: d.table.stripe]
+    from ..calibrate._solve import pixel_gains
 
-    def where(d):
-        return tuple(g(d) for g in getters)
-
-    @eqx.filter_jit
-    def gains(params, data):
-        prim = where(data)
-
-        def res(pix):
-            return fn(params, eqx.tree_at(where, data, pix))
-
-        out = jnp.zeros(())
-        for axis in (0, 1):
-            tan = tuple(jnp.zeros_like(p).at[..., axis].set(1.0) for p in prim)
-            out = out + jax.jvp(res, (prim,), (tan,))[1] ** 2
-        return out
-
-    return np.asarray(gains(params, data), dtype=np.float64)
+    return np.asarray(eqx.filter_jit(pixel_gains)(fn, params, data), dtype=np.float64)
 
 
 def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None, correlations=None):
