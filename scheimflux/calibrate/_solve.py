@@ -346,7 +346,7 @@ def observed_pixels(data) -> tuple:
     return out
 
 
-def pixel_gains(fn: Callable, params, data):
+def own_pixel_gains(fn: Callable, params, data):
     """`|∂r_i/∂p_i|²` of every residual of `fn(params, data)` for its own observed pixel
     (traceable; see `metrology.pixel_noise_gains`): every residual of the joint problems
     depends on one observed pixel, so one JVP with every u tangent 1 gives each
@@ -367,7 +367,7 @@ def pixel_gains(fn: Callable, params, data):
 def _linearised(x, args, gains: bool):
     fn, unravel, static, data = args
     J, r = jax.jacfwd(lambda v: (_unscaled(v, args),) * 2, has_aux=True)(x)
-    a = pixel_gains(fn, eqx.combine(unravel(x), static), data) if gains else None
+    a = own_pixel_gains(fn, eqx.combine(unravel(x), static), data) if gains else None
     return r, J, a
 
 
@@ -377,9 +377,11 @@ def linearised(fn: Callable, params, data, spec, *, pixel_gains: bool = False):
     noise of its own observed pixel, `a_i = |∂r_i/∂p_i|²` (else None; see
     `metrology.pixel_noise_gains`), as NumPy float64 arrays.
 
-    One exported program (a one-off: compiled without XLA's expensive passes), so a new
-    process with the same shapes neither traces nor compiles it again; the residuals are
-    not evaluated op by op (seconds for the joint residuals).
+    One exported program, so a process after the first with the same shapes neither
+    traces nor compiles it (the residuals op by op took seconds for a joint problem). It
+    is compiled with XLA's full optimisation: without the expensive passes (as the
+    solver's one-off programs) it ran 2-3x slower (2.3-3.0 s against 0.9-1.5 s for
+    49026 residuals × 68 parameters).
     """
     x0, unravel, static = split(params, spec)
     r, J, a = _linearised(x0, (fn, unravel, static, data), bool(pixel_gains))

@@ -40,7 +40,7 @@ from ._covariance import (
 )
 from ._model import CalibrationData
 from ._result import Calibration
-from ._solve import RANK_RTOL, Fit, jacobian, parameter_labels, split
+from ._solve import RANK_RTOL, Fit, linearised, parameter_labels, split
 
 __all__ = ["fit_diagnostics", "length_uncertainty", "point_uncertainty", "raise_covariance"]
 
@@ -149,7 +149,7 @@ def _normal_equations(cal: Calibration, block: str, fit: Fit):
             "observations: read it with read_calibration(path, observations=OBS)"
         )
     fn, params, spec = residual_function(cal, block)
-    J = np.asarray(jacobian(fn, params, cal.data, spec), dtype=np.float64)
+    _, J, _ = linearised(fn, params, cal.data, spec)
     n = int(np.count_nonzero(np.asarray(fit.residuals)))
     return J.T @ J, parameter_labels(params, spec), n
 

@@ -217,9 +217,9 @@ def pixel_noise_gains(fn, params, data) -> np.ndarray:
     """
     import equinox as eqx
 
-    from ..calibrate._solve import pixel_gains
+    from ..calibrate._solve import own_pixel_gains
 
-    return np.asarray(eqx.filter_jit(pixel_gains)(fn, params, data), dtype=np.float64)
+    return np.asarray(eqx.filter_jit(own_pixel_gains)(fn, params, data), dtype=np.float64)
 
 
 def sandwich_covariance(J, r, sizes, *, rtol: float = 1e-8, gains=None, correlations=None):
