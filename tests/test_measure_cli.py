@@ -28,6 +28,8 @@ def test_cylinder_from_a_measurement_frame_points_file(tmp_path, capsys):
     rc, out, _ = _run(["measure", pts, "--cylinder", "--out", res], capsys)
     assert rc == 0 and "radius" in out and re.search(r"calibration +not included", out)
     assert re.search(r"frozen parameters +not included", out)
+    # the headline's U says what it leaves out
+    assert "(U, k = 2, without calibration, frozen parameters, stripe noise)" in out
     with open(res) as fh:
         doc = json.load(fh)
     assert doc["format"] == "scheimflux.measurement/1" and doc["kind"] == "cylinder"
@@ -84,3 +86,12 @@ def test_calibration_without_covariance_is_refused(tmp_path, capsys):
     rc, _, err = _run(["measure", "--cylinder", "--calibration", str(tmp_path / "x.json"),
                        "--stripes", str(stripes)], capsys)
     assert rc == 1 and "no such file" in err
+
+
+def test_small_uncertainties_keep_their_digits():
+    # a U of the fit residual alone over ~40000 points is ~1e-4 µm: printed as 0.000 it
+    # read as an exact value
+    from scheimflux.metrology._gum import _um
+
+    assert _um(2.4e-7) == "0.00024" and _um(-3.1e-8) == "-3.1e-05"
+    assert _um(1.2345e-3) == "1.234" and _um(1e-6) == "0.001" and _um(0.0) == "0.000"

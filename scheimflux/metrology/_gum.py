@@ -94,16 +94,22 @@ class Measurement:
         return self.coverage_factor * self.std
 
     def summary(self) -> str:
-        """A few lines: each value ± U (k = 2) with its budget, and the residuals."""
+        """A few lines: each value ± U (k = 2) with its budget, and the residuals.
+
+        The headline names the sources the U leaves out (a U of the fit residual alone
+        is not the measurement's), and values under 0.001 µm keep two significant digits
+        rather than printing as 0.000."""
         lines = [f"{self.kind} fit: {self.n_points} points, {self.n_params} parameters"]
+        left = [src.replace("_", " ") for src in SOURCES if self.budget.get(src) is None]
+        which = f", without {', '.join(left)}" if left else ""
         for k, name in enumerate(self.names):
             lines.append(
-                f"  {name:<12} {self.values[k]:.6f} mm ± {self.U[k] * 1e3:.3f} µm "
-                f"(U, k = {self.coverage_factor:g})"
+                f"  {name:<12} {self.values[k]:.6f} mm ± {_um(self.U[k])} µm "
+                f"(U, k = {self.coverage_factor:g}{which})"
             )
             for src in SOURCES:
                 b = self.budget.get(src)
-                text = "not included" if b is None else f"u = {b[k] * 1e3:.3f} µm"
+                text = "not included" if b is None else f"u = {_um(b[k])} µm"
                 lines.append(f"    {src.replace('_', ' '):<17} {text}")
         st = self.residual_stats
         if self.n_params:
@@ -151,6 +157,12 @@ class Measurement:
                 "d_values": [[num(v) for v in row] for row in self.sensitivity["d_values"]],
             }
         return out
+
+
+def _um(mm: float) -> str:
+    """A length in mm as µm: 3 decimals, or 2 significant digits below 0.001 µm."""
+    um = float(mm) * 1e3
+    return f"{um:.3f}" if abs(um) >= 1e-3 or um == 0 else f"{um:.2g}"
 
 
 @eqx.filter_jit
