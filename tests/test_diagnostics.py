@@ -295,3 +295,27 @@ def test_cross_validate_needs_six_views(data):
     obs = dataclasses.replace(data[0], views=data[0].views[:5])
     with pytest.raises(ValueError, match="6 views"):
         cross_validate(obs)
+
+
+def test_distortion_terms_undetermined_one_by_one_are_named():
+    # k1 (σ 0.2 > |0.1|) is undetermined alone, k2 (σ 1 < 5) is not; jointly, with
+    # z = (0.5, 5) in units of σ and correlation −0.9: chi² = zᵀ R⁻¹ z =
+    # (0.25 + 2 · 0.9 · 2.5 + 25) / (1 − 0.81) = 156.6
+    from scheimflux.calibrate._covariance import Diagnostics
+
+    std = np.array([0.1, 0.2, 1.0])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -0.9], [0.0, -0.9, 1.0]])
+
+    def diag(values):
+        return Diagnostics(
+            block="camera", labels=["camera.e", "camera.distortion.k1", "camera.distortion.k2"],
+            values=np.asarray(values), std=std, covariance=R * np.outer(std, std),
+            correlation=R, variance_factor=1.0, n_residuals=100, n_params=3,
+            singular_values=np.ones(3), condition_number=1.0, null_directions=[], warnings=[],
+        )  # fmt: skip
+
+    text = diag([1.0, 0.1, 5.0]).summary()
+    line = [s for s in text.splitlines() if "not determined one by one" in s]
+    assert len(line) == 1 and line[0].strip().startswith("k1: σ larger than the value")
+    assert "up to 0.9)" in line[0] and "chi² = 157 " in line[0]
+    assert "not determined one by one" not in diag([1.0, 0.3, 5.0]).summary()

@@ -193,6 +193,9 @@ class Diagnostics:
             if not _is_system(lab):
                 continue
             lines.append(f"  {lab:<32} {self.values[i]:>16.9g} {self.std[i]:>12.3g}  {_unit(lab)}")
+        note = self._undetermined_terms_note()
+        if note:
+            lines.append(note)
         rot = self.select("board_poses.rotvec")
         tra = self.select("board_poses.translation")
         if len(rot) or len(tra):
@@ -220,6 +223,34 @@ class Diagnostics:
             lines.append("")
             lines.extend(f"  warning: {w}" for w in self.warnings)
         return "\n".join(lines)
+
+    def _undetermined_terms_note(self) -> str:
+        """A line naming the distortion terms whose σ exceed their value (with a high
+        radial order the terms trade against each other: each is undetermined alone while
+        the distortion they make together may be well fixed), or ""."""
+        dist = self.select("camera.distortion.")
+        weak = [int(i) for i in dist if self.std[i] > abs(self.values[i])]
+        if not weak:
+            return ""
+        rho = max(
+            (abs(float(self.correlation[i, j])) for i in weak for j in dist if j != i),
+            default=0.0,
+        )
+        # the terms' joint significance: x' S⁺ x over all distortion terms (~ their count
+        # where the data cannot tell the distortion from none at all)
+        # (in units of each σ: the terms' scales span 1e-4 to 1e6)
+        z = np.asarray(self.values, dtype=np.float64)[dist] / self.std[dist]
+        R = np.asarray(self.correlation, dtype=np.float64)[np.ix_(dist, dist)]
+        chi2 = float(z @ np.linalg.pinv(R, hermitian=True) @ z)
+        names = ", ".join(self.labels[i].rsplit(".", 1)[-1] for i in weak)
+        return (
+            f"  {names}: σ larger than the value, not determined one by one (|ρ| with the "
+            f"other distortion terms up to {rho:.3g}); all {len(dist)} distortion terms "
+            f"together: chi² = {chi2:.3g} (about {len(dist)} where the data cannot tell "
+            "the distortion from none). Their effect on what is measured is in the σ of "
+            "lengths and points (length_uncertainty, measure), which carry the full "
+            "covariance"
+        )
 
     def to_dict(self) -> dict:
         """JSON-ready dict for the calibration file (no board poses' covariance)."""
