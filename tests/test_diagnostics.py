@@ -306,7 +306,7 @@ def test_distortion_terms_undetermined_one_by_one_are_named():
     std = np.array([0.1, 0.2, 1.0])
     R = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -0.9], [0.0, -0.9, 1.0]])
 
-    def diag(values):
+    def diag(values, std=std):
         return Diagnostics(
             block="camera", labels=["camera.e", "camera.distortion.k1", "camera.distortion.k2"],
             values=np.asarray(values), std=std, covariance=R * np.outer(std, std),
@@ -319,3 +319,6 @@ def test_distortion_terms_undetermined_one_by_one_are_named():
     assert len(line) == 1 and line[0].strip().startswith("k1: σ larger than the value")
     assert "up to 0.9)" in line[0] and "chi² = 157 " in line[0]
     assert "not determined one by one" not in diag([1.0, 0.3, 5.0]).summary()
+    # a term without σ (held in a null direction): no chi², no division by zero
+    text = diag([1.0, 0.1, 5.0], std=np.array([0.1, 0.2, 0.0])).summary()
+    assert "k1: σ larger than the value" in text and "chi²" not in text

@@ -236,20 +236,25 @@ class Diagnostics:
             (abs(float(self.correlation[i, j])) for i in weak for j in dist if j != i),
             default=0.0,
         )
-        # the terms' joint significance: x' S⁺ x over all distortion terms (~ their count
-        # where the data cannot tell the distortion from none at all)
-        # (in units of each σ: the terms' scales span 1e-4 to 1e6)
-        z = np.asarray(self.values, dtype=np.float64)[dist] / self.std[dist]
-        R = np.asarray(self.correlation, dtype=np.float64)[np.ix_(dist, dist)]
-        chi2 = float(z @ np.linalg.pinv(R, hermitian=True) @ z)
+        # the terms' joint significance, x' S⁺ x over all distortion terms (about their
+        # count where the data cannot tell the distortion from none at all), in units of
+        # each σ (the terms' scales span 1e-4 to 1e6)
+        sd = np.asarray(self.std, dtype=np.float64)[dist]
+        joint = ""
+        if np.all(np.isfinite(sd) & (sd > 0)):
+            z = np.asarray(self.values, dtype=np.float64)[dist] / sd
+            R = np.asarray(self.correlation, dtype=np.float64)[np.ix_(dist, dist)]
+            chi2 = float(z @ np.linalg.pinv(R, hermitian=True) @ z)
+            joint = (
+                f"; all {len(dist)} distortion terms together: chi² = {chi2:.3g} (about "
+                f"{len(dist)} where the data cannot tell the distortion from none)"
+            )
         names = ", ".join(self.labels[i].rsplit(".", 1)[-1] for i in weak)
         return (
             f"  {names}: σ larger than the value, not determined one by one (|ρ| with the "
-            f"other distortion terms up to {rho:.3g}); all {len(dist)} distortion terms "
-            f"together: chi² = {chi2:.3g} (about {len(dist)} where the data cannot tell "
-            "the distortion from none). Their effect on what is measured is in the σ of "
-            "lengths and points (length_uncertainty, measure), which carry the full "
-            "covariance"
+            f"other distortion terms up to {rho:.3g}){joint}. Their effect on what is "
+            "measured is in the σ of lengths and points (length_uncertainty, measure), "
+            "which carry the full covariance"
         )
 
     def to_dict(self) -> dict:
