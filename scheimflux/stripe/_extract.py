@@ -487,15 +487,21 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
             if retry_c is not None:
                 signals[ch] = retry_c
     for ch, sig in signals.items():
-        opts = {**options, "channel": ch}
-        found = long_ridge_track(sig.img, sig.width, sig.noise, sig.roi, sig.orientation)
-        if found is None:
-            continue
-        orientation, path = found
-        res_l, _ = _extract_track(image, **{**opts, "orientation": orientation}, track=path)
-        if res_l.valid.any():
+        res_l = _on_long_ridge(image, {**options, "channel": ch}, sig, sig.orientation)
+        if res_l is not None and res_l.valid.any():
             return _with_steep(image, res_l, options)
     return _whole_line_too_steep(image, result, options)
+
+
+def _on_long_ridge(image: Any, options: dict, sig, orientation: str, **extra: Any):
+    """`_extract_track` along the longest continuous narrow ridge of a pass that found
+    no coarse track (`sig`, its retry signal), searched in `orientation`; None where
+    there is no such ridge. `extra`: further `_extract_track` arguments (a band)."""
+    found = long_ridge_track(sig.img, sig.width, sig.noise, sig.roi, orientation)
+    if found is None:
+        return None
+    opts = {**options, "orientation": found[0]}
+    return _extract_track(image, **opts, **extra, track=found[1])[0]
 
 
 def _whole_line_too_steep(image: Any, result: StripeResult, options: dict) -> StripeResult:
@@ -531,10 +537,8 @@ def _with_steep(image: Any, result: StripeResult, options: dict) -> StripeResult
             return found
         # no coarse track in the band (a dim line): the longest narrow ridge there, as
         # `_extract_one` tries for the whole frame
-        ridge = long_ridge_track(retry.img, retry.width, retry.noise, retry.roi, orientation)
-        if ridge is None:
-            return found
-        return _extract_track(image, **opts, min_line=min_pts, band=band, track=ridge[1])[0]
+        ridge = _on_long_ridge(image, opts, retry, orientation, min_line=min_pts, band=band)
+        return found if ridge is None else ridge
 
     merge = options.get("orientation", "auto") == "auto"
     return follow_steep(result, shape, extract_other, merge)
