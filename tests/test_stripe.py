@@ -816,3 +816,71 @@ def test_background_gain_one_is_the_plain_laser_off_path(monkeypatch):
         extract_stripe(on, background=off[:-2], background_gain="auto")
     with pytest.raises(ValueError, match="is colour"):
         extract_stripe(on, background=np.dstack([off] * 3), background_gain="auto")
+
+
+def test_render_stripe_memory_is_bounded_for_a_steep_centre():
+    """A centre function with a near-vertical step in one column (as a spline through
+    the centres of an arc that turns back gives) used to make the renderer allocate the
+    step's whole height for every column: (2 · 6σ·slope, 640, 8) float64 arrays, ~1 GB
+    here (a ring gauge's scan frame asked for 24 GB). Now at most one block of columns
+    over the image's rows: 16 MiB per intermediate, a handful of them."""
+    import tracemalloc
+
+    def centre(s):
+        return 240.0 + 2000.0 * np.clip(s - 320.0, 0.0, 0.05)  # slope 2000 over 0.05 px
+
+    tracemalloc.start()
+    img, truth = render_stripe((480, 640), centre, seed=0)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 200 * 2**20, peak / 2**20
+    assert img.shape == (480, 640) and truth.valid[:300].all()
+
+
+def _turning_arc():
+    """An arc of radius 300 px over 250 degrees: it turns back in u and in v."""
+    phi = np.radians(np.linspace(-35.0, 215.0, 180))
+    return np.stack([400.0 + 300.0 * np.cos(phi), 340.0 - 300.0 * np.sin(phi)], 1)
+
+
+def test_render_stripe_curve_is_centred_on_its_line():
+    """`orientation="curve"`: a line of any shape, its ridge on the curve through the
+    given points. Scored with the extractor on the parts within 40° of either axis
+    (where one scan direction sees it; `extract_stripe` "auto" follows the rest), by the
+    distance of each centre to the exact circle. Bound: the extractor's error on
+    straight noise-free 16-bit stripes is < 0.005 px; the spline through 180 points
+    (1.5° apart) deviates from the circle by < 1e-4 px, and the profile's 2 × 2 samples
+    per pixel are symmetric about the line, so 0.02 px leaves 4× for curvature
+    (σ² κ / 2 ≈ 0.004 px at 300 px radius) and the scan's slant."""
+    pts = _turning_arc()
+    img, truth = render_stripe(
+        (720, 800), pts, orientation="curve", peak=0.6, noise_sigma=0.0, bit_depth=16
+    )
+    assert truth.orientation == "curve"
+    # truth: the curve every pixel of its length, on the circle
+    assert np.abs(np.hypot(truth.uv[:, 0] - 400.0, truth.uv[:, 1] - 340.0) - 300.0).max() < 1e-3
+    length = 300.0 * np.radians(250.0)
+    assert abs(len(truth.uv) - length) < 2
+    res = extract_stripe(img, width_px=5)
+    uv = res.uv[res.valid]
+    r = np.hypot(uv[:, 0] - 400.0, uv[:, 1] - 340.0)
+    ang = np.degrees(np.arctan2(340.0 - uv[:, 1], uv[:, 0] - 400.0))
+    ends = (ang > -35.0 + 3.0) & (ang < 215.0 - 3.0)  # away from the line's two ends
+    assert ends.sum() > 0.4 * length  # 745 centres of 1309 px: auto keeps 57 % of this arc
+    assert np.sqrt(np.mean((r[ends] - 300.0) ** 2)) < 0.02
+
+
+def test_scene_images_render_lines_that_turn_back():
+    """`simulate --images` renders each stripe through its traced pixels; a line that
+    is not one centre per column or row (a ring smaller than the field: its arc turns
+    back) is drawn as a curve, not a spline of v over u with slopes of 10⁴."""
+    from scheimflux.simulate._images import _stripe_image
+
+    pts = _turning_arc()
+    img = _stripe_image((720, 800), pts, width_px=5.0, peak=0.6, noise_sigma=0.0, bit_depth=16)
+    ref, _ = render_stripe(
+        (720, 800), pts, orientation="curve", peak=0.6, noise_sigma=0.0, bit_depth=16
+    )
+    np.testing.assert_array_equal(img, ref)
+    with pytest.raises(ValueError, match="curve"):
+        render_stripe((100, 100), pts[:1], orientation="curve")

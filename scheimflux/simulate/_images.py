@@ -101,6 +101,13 @@ def _stripe_image(shape, pts, **kw) -> np.ndarray:
         span = np.ptp(pts, axis=0)
         vertical = span[1] > span[0]
         along, across = (pts[:, 1], pts[:, 0]) if vertical else (pts[:, 0], pts[:, 1])
+        step = np.diff(along)
+        if np.any(step > 0) and np.any(step < 0):
+            # not one centre per column or row (an arc that turns back, as a ring smaller
+            # than the field images): the curve through the points in their order
+            pts = pts[np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 0])]
+            img, _ = render_stripe(shape, pts, orientation="curve", **kw)
+            return img
         order = np.argsort(along)
         along, idx = np.unique(along[order], return_index=True)
         across = across[order][idx]

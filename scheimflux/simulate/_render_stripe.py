@@ -23,11 +23,13 @@ import numpy as np
 
 _AMBIENT = {"dark": 0.02, "low": 0.15, "bright": 0.45}
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+_BLOCK_ELEMENTS = 1 << 21  # float64 elements of one block's intermediates (16 MiB)
 
 
 @dataclasses.dataclass(frozen=True)
 class StripeTruth:
-    """The exact stripe centres of a rendered image, one per scan line.
+    """The exact stripe centres of a rendered image, one per scan line (a curve's: one
+    per pixel of its length).
 
     - `uv`: (N, 2) float64 centres `(u, v)`: for a horizontal stripe `(u, f(u))` for every
       column u, for a vertical one `(f(v), v)` for every row v.
@@ -35,7 +37,8 @@ class StripeTruth:
       image.
     - `saturated`: (N,) bool: the stripe's peak pixel was clipped at full scale.
     - `width_px`: FWHM across the stripe (px); `sigma_px` the Gaussian's standard deviation.
-    - `orientation`: `"horizontal"` or `"vertical"` (direction the stripe runs).
+    - `orientation`: `"horizontal"` or `"vertical"` (direction the stripe runs), or
+      `"curve"` (`uv` then the curve every pixel of its length, in its order).
     - `peak_level`: the stripe's peak above the ambient, in grey levels.
     - `full_scale`: `2**bit_depth - 1`.
     """
@@ -101,7 +104,11 @@ def _ambient(level: Any, shape: tuple[int, int]) -> np.ndarray:
 def _render_profile(
     f, h: int, w: int, sigma: float, amplitude: float, gaps, supersample: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-integrated stripe (horizontal, scan = columns) on an (h, w) float image."""
+    """Pixel-integrated stripe (horizontal, scan = columns) on an (h, w) float image.
+
+    Computed over blocks of columns and only over the image's rows: the memory stays
+    bounded for a steep centre function (a slope of 10⁴ in one column once asked for a
+    (35423, 1600, 8) array)."""
     u = np.arange(w, dtype=np.float64)
     sub = (np.arange(supersample) + 0.5) / supersample - 0.5
     us = u[:, None] + sub[None, :]  # (w, S)
@@ -112,20 +119,40 @@ def _render_profile(
     lit = np.ones_like(us, dtype=bool)
     for start, stop in gaps:
         lit &= ~((us >= start - 0.5) & (us < stop - 0.5))
+    # each column's rows within `reach` of its centre pixel (as one array once; the
+    # reach from the steepest column), computed over blocks of columns
     reach = int(math.ceil(6.0 * float(sv.max()) + float(np.ptp(vc, axis=1).max()) + 2))
     centre_row = np.rint(f(u)).astype(np.int64)
-    rows = centre_row[None, :] + np.arange(-reach, reach + 1)[:, None]  # (K, w)
-    lo = (rows[:, :, None] - 0.5 - vc[None]) / (math.sqrt(2.0) * sv[None])
-    hi = (rows[:, :, None] + 0.5 - vc[None]) / (math.sqrt(2.0) * sv[None])
-    # Integral over the pixel height of exp(-(v - vc)^2 / (2 sv^2)), times the amplitude.
-    mass = 0.5 * (_erf(hi) - _erf(lo)) * (sv[None] * math.sqrt(2.0 * math.pi))
-    vals = amplitude * np.mean(mass * lit[None], axis=2)
     img = np.zeros((h, w))
-    cols = np.broadcast_to(np.arange(w)[None, :], rows.shape)
-    inside = (rows >= 0) & (rows < h)
-    img[rows[inside], cols[inside]] += vals[inside]
+    block = max(1, min(w, _BLOCK_ELEMENTS // (h * supersample)))
+    for c0 in range(0, w, block):
+        c1 = min(w, c0 + block)
+        cr = centre_row[c0:c1]
+        r0, r1 = max(0, int(cr.min()) - reach), min(h - 1, int(cr.max()) + reach)
+        if r1 < r0:
+            continue
+        rows = np.arange(r0, r1 + 1)[:, None]  # (K, 1)
+        vb, sb = vc[None, c0:c1], sv[None, c0:c1]
+        lo = (rows[:, :, None] - 0.5 - vb) / (math.sqrt(2.0) * sb)
+        hi = (rows[:, :, None] + 0.5 - vb) / (math.sqrt(2.0) * sb)
+        # integral over the pixel height of exp(-(v - vc)^2 / (2 sv^2)), times the amplitude
+        mass = 0.5 * (_erf(hi) - _erf(lo)) * (sb * math.sqrt(2.0 * math.pi))
+        vals = amplitude * np.mean(mass * lit[None, c0:c1], axis=2)
+        img[r0 : r1 + 1, c0:c1] = np.where(np.abs(rows - cr[None]) <= reach, vals, 0.0)
     present = lit.all(axis=1)
     return img, present
+
+
+def _polyline_samples(pts: np.ndarray, step: float) -> np.ndarray:
+    """Points every `step` px of arc length along the curve through `pts` (K, 2), in
+    their order: a cubic spline in the chord length (a polyline for K < 4)."""
+    t = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    s = np.linspace(0.0, t[-1], max(2, int(math.ceil(t[-1] / step)) + 1))
+    if len(pts) >= 4:
+        from scipy.interpolate import CubicSpline
+
+        return CubicSpline(t, pts, axis=0)(s)
+    return np.stack([np.interp(s, t, pts[:, 0]), np.interp(s, t, pts[:, 1])], axis=1)
 
 
 def render_stripe(
@@ -154,7 +181,11 @@ def render_stripe(
       increasing; for `"vertical"` a callable `u = f(v)` or a polyline `[(v, u), ...]` with
       v increasing. Default: a straight line through the middle of the image.
     - `orientation`: `"horizontal"` (runs left–right; truth per column) or `"vertical"`
-      (runs top–bottom; truth per row).
+      (runs top–bottom; truth per row), or `"curve"`: a line of any shape (an arc that
+      turns back, a loop), `centre` a polyline `[(u, v), ...]` in order along it,
+      rendered as the Gaussian of each point's distance to the smooth curve through
+      those points (averaged over 2 × 2 points per pixel, as `render_capture`'s line);
+      truth every pixel of its length.
     - `width_px`: full width at half maximum across the stripe (px); the Gaussian's
       standard deviation is `width_px / (2 sqrt(2 ln 2))`.
     - `peak`: the stripe's peak above the ambient, fraction of full scale.
@@ -180,13 +211,22 @@ def render_stripe(
         raise ValueError(f"shape must be (H, W) with both at least 8, got {tuple(shape)}")
     if bit_depth not in (8, 12, 16):
         raise ValueError(f"bit_depth must be 8, 12 or 16, got {bit_depth}")
-    if orientation not in ("horizontal", "vertical"):
-        raise ValueError(f"orientation must be 'horizontal' or 'vertical', got {orientation!r}")
+    if orientation not in ("horizontal", "vertical", "curve"):
+        raise ValueError(
+            f"orientation must be 'horizontal', 'vertical' or 'curve', got {orientation!r}"
+        )
     if not (width_px > 0 and peak >= 0 and speckle >= 0 and noise_sigma >= 0):
         raise ValueError("width_px must be > 0 and peak, speckle, noise_sigma >= 0")
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     h_img, w_img = int(shape[0]), int(shape[1])
+    if orientation == "curve":
+        return _render_curve_image(
+            (h_img, w_img), centre, width_px=float(width_px), peak=float(peak),
+            ambient=ambient, speckle=float(speckle), noise_sigma=float(noise_sigma),
+            bit_depth=bit_depth, saturate=saturate, gaps=gaps, reflection=reflection,
+            seed=seed,
+        )  # fmt: skip
     vertical = orientation == "vertical"
     h, w = (w_img, h_img) if vertical else (h_img, w_img)  # scan frame: stripe horizontal
     full = float(2**bit_depth - 1)
@@ -233,6 +273,55 @@ def render_stripe(
         sigma_px=sigma,
         orientation=orientation,
         peak_level=float(peak) * full,
+        full_scale=int(full),
+    )
+    return img, truth
+
+
+def _render_curve_image(
+    shape, centre, *, width_px, peak, ambient, speckle, noise_sigma, bit_depth, saturate,
+    gaps, reflection, seed,
+) -> tuple[np.ndarray, StripeTruth]:  # fmt: skip
+    """`render_stripe(..., orientation="curve")`."""
+    if gaps or reflection is not None:
+        raise ValueError("gaps and reflection need a horizontal or vertical stripe, not a curve")
+    pts = np.asarray(centre, dtype=np.float64) if centre is not None else None
+    if pts is None or pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
+        raise ValueError("a curve needs centre as a polyline of shape (K >= 2, 2) of (u, v)")
+    if not np.isfinite(pts).all() or np.any(np.linalg.norm(np.diff(pts, axis=0), axis=1) == 0):
+        raise ValueError("the curve's points must be finite and consecutive points distinct")
+    h, w = shape
+    full = float(2**bit_depth - 1)
+    sigma = width_px / _FWHM_PER_SIGMA
+    rng = np.random.default_rng(seed)
+    from ._render_capture import _profile  # the capture renderer's line of any shape
+
+    dense = _polyline_samples(pts, 0.125)
+    stripe = _profile((h, w), dense, np.r_[True, np.zeros(len(dense) - 1, bool)], sigma, 1.0)
+    if speckle > 0:
+        k = 1.0 / speckle**2
+        stripe = stripe * rng.gamma(k, 1.0 / k, size=stripe.shape)
+    background = _ambient(ambient, (h, w))
+    clean = full * (background + peak * stripe)
+    img = clean
+    if noise_sigma > 0:
+        img = clean + rng.normal(0.0, noise_sigma * full, size=clean.shape)
+    uv = dense[::8]  # every pixel of the curve's length
+    valid = (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5)
+    valid &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
+    r = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
+    c = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
+    saturated = valid & (clean[r, c] >= full)
+    if saturate:
+        img = np.clip(np.rint(img), 0, full).astype(np.uint8 if bit_depth == 8 else np.uint16)
+    truth = StripeTruth(
+        uv=uv,
+        valid=valid,
+        saturated=saturated,
+        width_px=float(width_px),
+        sigma_px=sigma,
+        orientation="curve",
+        peak_level=peak * full,
         full_scale=int(full),
     )
     return img, truth
