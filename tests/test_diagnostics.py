@@ -240,6 +240,22 @@ def test_point_sigma_scales_with_noise(cal, cal2, stripe_uv):
     assert 1.6 < np.median(d2.std / d1.std) < 2.5
 
 
+def test_sequential_point_sigma_is_floored_as_the_stated_covariance(cal, data, stripe_uv):
+    """A sequential calibration's point σ come from the joint problem linearised at its
+    estimate with the camera solve's s², floored at 1 as every stated covariance is
+    (`fit_diagnostics`). Corners stated at 4× their simulated noise (s² = 0.073): the
+    stated σ must follow the statement, ≈ 4/√s²₁ = 3.70× those of the calibration that
+    states the true noise (s²₁ = 1.17; the stripes' σ unchanged keep it a little below);
+    scaled by s² itself they were the same σ (ratio 1.00)."""
+    loose = calibrate(data[0], sigma_corner_px=0.12, **KW)
+    assert diagnostics(loose, block="joint").variance_factor < 0.1
+    _, s1, _ = point_uncertainty(cal, stripe_uv)
+    _, s4, _ = point_uncertainty(loose, stripe_uv)
+    s2 = diagnostics(cal, block="joint").variance_factor
+    ratio = s4 / s1
+    assert np.all((ratio > 3.3) & (ratio < 4.0 / np.sqrt(max(1.0, s2)) * 1.01)), ratio
+
+
 def test_point_uncertainty_rejects_bad_frame(cal, stripe_uv):
     with pytest.raises(ValueError, match="frame"):
         point_uncertainty(cal, stripe_uv, frame="board")

@@ -21,6 +21,7 @@ between two reconstructed points.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 
@@ -282,7 +283,8 @@ def point_uncertainty(
     (`max(1, s²)(JᵀJ)⁺`, raised where the stripe centres along a line share their
     errors). A sequential calibration (`joint=False`) has no joint solve: there it is
     [`diagnostics`][]`(cal, block="joint")`, the joint problem linearised at the
-    sequential estimate with the camera solve's s².
+    sequential estimate with the camera solve's s², floored at 1 as the stated
+    covariance is.
 
     The σ is relative to the **camera frame** (its origin at the image-side principal
     point): it is dominated by the frame's poorly determined placement along the optical
@@ -314,7 +316,18 @@ def point_uncertainty(
         fi = jnp.zeros(uv.shape[:1], dtype=jnp.float64)
         prefixes = ("camera.", "plane.")
     if diag is None:
-        diag = fit_diagnostics(cal) if "joint" in cal.fits else diagnostics(cal, block="joint")
+        if "joint" in cal.fits:
+            diag = fit_diagnostics(cal)
+        else:
+            # the linearised joint problem with the camera solve's s², floored at 1 as
+            # the stated covariance is: residuals that scatter less than the stated σ
+            # do not make every parameter better known
+            diag = diagnostics(cal, block="joint")
+            s2 = diag.variance_factor
+            if math.isfinite(s2) and 0 < s2 < 1:
+                diag = dataclasses.replace(
+                    diag, covariance=diag.covariance / s2, std=diag.std / math.sqrt(s2)
+                )
     if diag.block != "joint" or list(diag.labels) != parameter_labels(params, spec):
         raise ValueError(
             "point_uncertainty needs the diagnostics of this calibration's joint problem "
