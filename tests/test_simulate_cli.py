@@ -51,3 +51,27 @@ def test_simulate_cli_user_errors(tmp_path, capsys):
     assert main(["simulate", "--out", str(tmp_path), "--lens", "no-such-lens"]) == 1
     assert "no-such-lens" in capsys.readouterr().err
     assert not (tmp_path / "observations.json").exists()
+
+
+def test_simulate_images_prints_the_detect_command_that_reads_them(tmp_path, capsys, monkeypatch):
+    """With --images the summary states the pixel pitch and ends with the `detect`
+    command for the rendered images, with the nominal values the observations state
+    (pitch, focal length, magnification, tilt in whole degrees, the scan): run as
+    printed, it finds the boards and the scan and records those values."""
+    import shlex
+
+    monkeypatch.chdir(tmp_path)
+    small = ["--views", "3", "--frames", "2", "--no-refine", "--seed", "2"]
+    assert main(["simulate", "--out", "sim", *small, "--images"]) == 0
+    text = capsys.readouterr().out
+    assert "sensor 1600x1200 px at 0.0044 x 0.0044 mm" in text
+    line = next(s for s in text.splitlines() if s.startswith("next, as from photos: "))
+    words = shlex.split(line.removeprefix("next, as from photos: "))
+    assert words[:3] == ["scheimflux", "detect", "sim/images"]
+    assert main(words[1:]) == 0
+    obs = read_observations("obs.json")
+    sim = read_observations("sim/observations.json")
+    assert obs.pixel_pitch_mm == sim.pixel_pitch_mm and obs.nominal == sim.nominal
+    assert len(obs.views) + len(obs.dropped) == 3 and len(obs.views) >= 1  # 2 boards cut
+    assert obs.stage is not None and len(obs.stage.frames) == 2
+    assert obs.stage.gauge_radius_mm == sim.stage.gauge_radius_mm

@@ -240,10 +240,12 @@ def run(args) -> int:
     stripe_pts = sum(len(v.stripe_px) for v in obs.views)
     scan_pts = sum(len(f) for f in frames)
     r = truth.rig
+    pitch = r["pixel_pitch_mm"]
     print(
         f"rig: {r['lens']}, |beta| = {r['magnification']:.3f}, sensor {r['sensor'][0]}x"
-        f"{r['sensor'][1]} px, tilt phi = {math.degrees(r['phi_rad']):.3f} deg, "
-        f"theta = {math.degrees(r['theta_rad']):.3f} deg, z0 = {r['z0_mm']:.3f} mm"
+        f"{r['sensor'][1]} px at {pitch[0]:g} x {pitch[1]:g} mm, tilt phi = "
+        f"{math.degrees(r['phi_rad']):.3f} deg, theta = {math.degrees(r['theta_rad']):.3f} "
+        f"deg, z0 = {r['z0_mm']:.3f} mm"
     )
     print(
         f"board: {board}; {len(obs.views)} views, {int(mask.sum())} of "
@@ -260,4 +262,32 @@ def run(args) -> int:
             f"rendered {len(written)} images into {images} (scan frames in "
             f"{os.path.join(images, 'scan')}) in {dt:.1f} s"
         )
+        print(f"next, as from photos: {_detect_command(obs, board, images)}")
     return 0
+
+
+def _detect_command(obs, board, images: str) -> str:
+    """The `scheimflux detect` command line for the rendered images, with the nominal
+    values the simulated observations state (what a user takes from datasheets and the
+    rig's drawing: pixel pitch, focal length, magnification, the sensor tilt in whole
+    degrees), not the traced truth."""
+    import shlex
+
+    words = ["scheimflux", "detect", images, "--board", f"{board.cols}x{board.rows}",
+             "--square-mm", f"{board.square_mm:g}"]  # fmt: skip
+    if obs.pixel_pitch_mm is not None:
+        words += ["--pixel-pitch-mm", *(f"{p:g}" for p in obs.pixel_pitch_mm)]
+    nom = obs.nominal
+    if nom.focal_length_mm is not None:
+        words += ["--focal-length-mm", f"{nom.focal_length_mm:g}"]
+    if nom.magnification is not None:
+        words += ["--magnification", f"{nom.magnification:g}"]
+    if nom.tilt_deg is not None:
+        words += ["--tilt-deg", *(f"{t:g}" for t in nom.tilt_deg)]
+    if obs.stage is not None:
+        words += [
+            "--scan", os.path.join(images, "scan"), "--gauge-radius-mm",
+            f"{obs.stage.gauge_radius_mm:g}", "--delta-omega-deg",
+            f"{obs.stage.delta_omega_deg:g}",
+        ]  # fmt: skip
+    return shlex.join(words + ["--out", "obs.json"])
