@@ -81,8 +81,8 @@ def frozen_derivatives(cal, shape, uv, fi, lab, frame, paths, source="the calibr
     used = [i for i, lab in enumerate(labels) if lab.startswith(prefixes)]
     f, theta0 = chain_function(shape, params, spec, used, frame)
     G = np.asarray(
-        jax.jacrev(f)(theta0, jnp.asarray(uv), jnp.asarray(fi), jnp.asarray(lab))
-    )  # (K, len(used))
+        jax.jit(jax.jacrev(f))(theta0, jnp.asarray(uv), jnp.asarray(fi), jnp.asarray(lab))
+    )  # (K, len(used)); one compiled program (op by op it dispatched ~700 small ones)
     pos = {c: k for k, c in enumerate(used)}
     d_total = np.stack([G[:, pos[c]] for c in q_cols], axis=1)
     th_pos = {c: k for k, c in enumerate(th_cols)}

@@ -2,10 +2,10 @@
 
 [`fit_shape`][] solves `min_y Σ_i |residual(y, x_i)|²` with optimistix's
 Levenberg–Marquardt from the shape's closed-form start. Its derivatives with respect to the
-points (and anything upstream of them: pixels, calibration parameters) come from
-optimistix's implicit adjoint: the implicit function theorem applied to the optimality
-condition at the optimum, not from unrolling the iterations. It is a pure function of
-arrays: `jax.jit`, `jax.vmap`, `jax.grad` and `jax.jacrev` apply.
+points (and anything upstream of them: pixels, calibration parameters) come from the
+implicit function theorem applied to the optimality condition at the optimum (as
+optimistix's implicit adjoint forms them), not from unrolling the iterations. It is a
+pure function of arrays: `jax.jit`, `jax.vmap`, `jax.grad` and `jax.jacrev` apply.
 """
 
 from __future__ import annotations
@@ -59,6 +59,27 @@ def _default_labels(X, labels):
     return jnp.asarray(labels, jnp.int32)
 
 
+def _implicit(residuals, y):
+    """`y` (the optimum of `½|residuals(y)|²`, its value unchanged) with the derivative
+    the implicit function theorem gives it through whatever `residuals` closes over:
+    `dy = −H⁻¹ d(Jᵀr)` at fixed y, H the cost's Hessian (`Jᵀr` and `H` as optimistix's
+    implicit adjoint forms them for a least-squares solve).
+
+    Written out rather than left to optimistix because its adjoint solves with lineax's
+    checked linear solve, whose failure branch is a host callback: programs that hold a
+    callback are never written to JAX's persistent compilation cache, so every `measure`
+    compiled its three differentiated programs again (~15 s). Degenerate fits are
+    refused before their derivatives are used (`shape.check`, the rank check of the
+    fit's parameter Jacobian)."""
+
+    def gradient(y):
+        return jax.grad(lambda y: 0.5 * jnp.sum(residuals(y) ** 2))(y)
+
+    H = jax.lax.stop_gradient(jax.jacfwd(gradient)(y))
+    step = -jnp.linalg.solve(H, gradient(y))
+    return y + (step - jax.lax.stop_gradient(step))
+
+
 def fit_shape(shape: AbstractShape, points, labels=None, *, max_steps: int = MAX_STEPS):
     """Fit `shape` to `points` by orthogonal least squares (differentiable).
 
@@ -86,15 +107,16 @@ def fit_shape(shape: AbstractShape, points, labels=None, *, max_steps: int = MAX
         frame, X, labels = args
         return _residuals(shape, y, frame, X, labels).reshape(-1)
 
+    # The solve sees no tangents; the derivatives come from `_implicit` below
     sol = optx.least_squares(
         fn,
         optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL),
-        y0,
-        args=(frame, X, labels),
+        jax.lax.stop_gradient(y0),
+        args=jax.lax.stop_gradient((frame, X, labels)),
         max_steps=max_steps,
         throw=False,
     )
-    y = sol.value
+    y = _implicit(lambda y: fn(y, (frame, X, labels)), jax.lax.stop_gradient(sol.value))
     r = _residuals(shape, y, frame, X, labels)
     return ShapeFit(
         shape, y, frame, shape.values(y, frame, X, labels), r, sol.result,

@@ -3,6 +3,7 @@ differentiated end to end (see `_gum.py` for the propagation)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -91,7 +92,30 @@ def _status(params, uv, fi, frame):
     return jax.vmap(lambda p, i: _reconstruct_one(params, p, i, frame))(uv, fi)
 
 
-def _joint_covariance(cal, diag, source):
+@dataclasses.dataclass(frozen=True)
+class _JointLabels:
+    """The joint problem's free-parameter labels, standing in for its diagnostics where
+    the group covariance gives Σ (what `diagnostics` would add, a Jacobian of every
+    residual, is then not needed)."""
+
+    labels: list
+    block: str = "joint"
+
+    def select(self, prefix) -> np.ndarray:
+        return np.array([i for i, lab in enumerate(self.labels) if lab.startswith(prefix)], int)
+
+
+def _joint_covariance(cal, diag, source, how="groups"):
+    from ..calibrate._model import CalibrationData
+
+    if (
+        diag is None and isinstance(how, str) and how == "groups" and "joint" in cal.fits
+        and isinstance(getattr(cal, "data", None), CalibrationData)
+    ):  # fmt: skip
+        from ..calibrate._solve import parameter_labels
+
+        _, params, spec = residual_function(cal, "joint")
+        return _JointLabels(parameter_labels(params, spec))
     if diag is None:
         try:
             diag = calibration_diagnostics(cal, block="joint")
@@ -122,6 +146,8 @@ def _calibration_covariance(cal, diag, how):
         try:
             how = group_covariance(cal)
         except ValueError as err:  # residual groups not known for this solve
+            if isinstance(diag, _JointLabels):
+                diag = _joint_covariance(cal, None, "the calibration", "pooled")
             return diag.covariance, (
                 f"variance factor {diag.variance_factor:.3g} pooled ({err})"
             )
@@ -130,7 +156,7 @@ def _calibration_covariance(cal, diag, how):
             "calibration_covariance must be 'groups', 'pooled' or a GroupCovariance, got "
             f"{how!r}"
         )
-    if how.covariance.shape != diag.covariance.shape:
+    if how.covariance.shape != (len(diag.labels),) * 2:
         raise ValueError("calibration_covariance does not match the calibration's parameters")
     if how.weighting == "pixels":
         noise = ", ".join(f"{g} {np.sqrt(v):.3g} px" for g, v in how.variance_factors.items())
@@ -210,7 +236,7 @@ def measure_stripes(
         frame_index = 0
     fi = np.broadcast_to(np.asarray(frame_index, dtype=np.float64), (n,)).copy()
     own = frames_on_calibration_gauge(cal, uv, fi)
-    diag = _joint_covariance(cal, diag, source)
+    diag = _joint_covariance(cal, diag, source, calibration_covariance)
     _, params, spec = residual_function(cal, "joint")
     prefixes = ("camera.", "plane.") + (("stage.",) if frame == "measurement" else ())
     idx = diag.select(prefixes)
