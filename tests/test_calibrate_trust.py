@@ -571,3 +571,33 @@ def test_a_calibration_read_back_states_the_same_uncertainties(correlated, tmp_p
     assert np.all(sa >= old * (1 - 1e-6)) and np.median(sa / old) > 1.2
     with pytest.raises(ValueError, match="joint problem"):
         point_uncertainty(cal, ua, diag=diagnostics(cal, block="camera"))
+
+
+def test_a_read_back_calibration_linearises_its_joint_problem_once(
+    correlated, tmp_path, monkeypatch
+):
+    """Its `fit_diagnostics` (every call: the file keeps no JᵀJ), the correlated-centres
+    covariance and `measure`'s group covariance share one Jacobian of the joint residuals
+    per solve (`_uncertainty.joint_linearisation`); they computed it on every call."""
+    from scheimflux.calibrate import _uncertainty, length_uncertainty, point_uncertainty
+    from scheimflux.io import read_calibration, write_calibration
+    from scheimflux.metrology import group_covariance
+
+    cal, obs = correlated
+    write_calibration(tmp_path / "cal.json", cal)
+    loaded = read_calibration(tmp_path / "cal.json", observations=obs)
+    calls = []
+    real = _uncertainty.linearised
+    monkeypatch.setattr(
+        _uncertainty, "linearised", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    first = fit_diagnostics(loaded)
+    uv = np.concatenate([v.stripe_px for v in obs.views])[:20]
+    point_uncertainty(loaded, uv)
+    length_uncertainty(loaded, uv[:10], uv[10:])
+    again = fit_diagnostics(loaded)
+    group_covariance(loaded)
+    assert len(calls) == 1
+    np.testing.assert_array_equal(again.covariance, first.covariance)
+    r, J, gains = _uncertainty.joint_linearisation(loaded)
+    assert not (r.flags.writeable or J.flags.writeable or gains.flags.writeable)

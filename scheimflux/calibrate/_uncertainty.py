@@ -81,6 +81,31 @@ def raise_covariance(T: np.ndarray, B: np.ndarray) -> np.ndarray:
     return (TU * np.maximum(m, 1.0)) @ TU.T
 
 
+# The joint residuals linearised at a joint solve's optimum, per solve and data:
+# `{id(fit): (weakref to fit, data, (r, J, gains))}`. A calibration read back from its
+# file keeps no normal matrix: its `fit_diagnostics` (every call), the correlated-centres
+# covariance and `measure`'s budget each needed this Jacobian (49026 x 68: ~1-3 s).
+_LINEARISED: dict[int, tuple] = {}
+
+
+def joint_linearisation(cal: Calibration):
+    """`(r, J, gains)` of the joint residuals at the calibration's joint optimum
+    (`_solve.linearised` with the pixel gains), computed once per joint solve and data."""
+    fn, params, spec = residual_function(cal, "joint")
+    fit = cal.fits.get("joint")
+    if fit is None:
+        return linearised(fn, params, cal.data, spec, pixel_gains=True)
+    hit = _LINEARISED.get(id(fit))
+    if hit is not None and hit[0]() is fit and hit[1] is cal.data:
+        return hit[2]
+    out = linearised(fn, params, cal.data, spec, pixel_gains=True)
+    for a in out:
+        a.setflags(write=False)  # shared by every caller
+    key = id(fit)
+    _LINEARISED[key] = (weakref.ref(fit, lambda _, k=key: _LINEARISED.pop(k, None)), cal.data, out)
+    return out
+
+
 # Correlation of the stripe centres along their lines, per joint solve (a calibration
 # with its quality gates added is a new object sharing the solve and its data):
 # `{id(fit): (weakref to fit, data, GroupCovariance or None)}`, so that the calibrate
@@ -150,7 +175,10 @@ def _normal_equations(cal: Calibration, block: str, fit: Fit):
             "observations: read it with read_calibration(path, observations=OBS)"
         )
     fn, params, spec = residual_function(cal, block)
-    _, J, _ = linearised(fn, params, cal.data, spec)
+    if block == "joint":
+        _, J, _ = joint_linearisation(cal)
+    else:
+        _, J, _ = linearised(fn, params, cal.data, spec)
     n = int(np.count_nonzero(np.asarray(fit.residuals)))
     return J.T @ J, parameter_labels(params, spec), n
 

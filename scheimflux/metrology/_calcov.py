@@ -140,15 +140,17 @@ def group_covariance(
     """
     from ..calibrate import residual_function
     from ..calibrate._covariance import NULL_RTOL
-    from ..calibrate._solve import linearised
+    from ..calibrate._uncertainty import joint_linearisation
 
     rtol = NULL_RTOL if rtol is None else rtol
     if cal.params.plane is None:
         raise ValueError("the calibration has no laser plane: no joint covariance")
     if weighting not in ("pixels", "groups"):
         raise ValueError(f"weighting must be 'pixels' or 'groups', got {weighting!r}")
-    fn, params, spec = residual_function(cal, "joint")
-    r, J, gains = linearised(fn, params, cal.data, spec, pixel_gains=weighting == "pixels")
+    _, params, _ = residual_function(cal, "joint")
+    r, J, gains = joint_linearisation(cal)
+    if weighting != "pixels":
+        gains = None
     sizes = _group_sizes(cal, params)
     if sum(sizes) != len(r):
         raise ValueError("the residual groups do not add up to the joint residual vector")
