@@ -821,8 +821,8 @@ def test_background_gain_one_is_the_plain_laser_off_path(monkeypatch):
 def test_render_stripe_memory_is_bounded_for_a_steep_centre():
     """A centre function with a near-vertical step in one column (as a spline through
     the centres of an arc that turns back gives) used to make the renderer allocate the
-    step's whole height for every column: (2 · 6σ·slope, 640, 8) float64 arrays, ~1 GB
-    here (a ring gauge's scan frame asked for 24 GB). Now at most one block of columns
+    step's whole height for every column: (2 · 6σ·slope, 640, 8) float64 arrays, 2.6 GB
+    each here (a ring gauge's scan frame asked for 24 GB). Now at most one block of columns
     over the image's rows: 16 MiB per intermediate, a handful of them."""
     import tracemalloc
 
@@ -845,9 +845,9 @@ def _turning_arc():
 
 def test_render_stripe_curve_is_centred_on_its_line():
     """`orientation="curve"`: a line of any shape, its ridge on the curve through the
-    given points. Scored with the extractor on the parts within 40° of either axis
-    (where one scan direction sees it; `extract_stripe` "auto" follows the rest), by the
-    distance of each centre to the exact circle. Bound: the extractor's error on
+    given points. Scored by the distance to the exact circle of the centres that
+    `extract_stripe` ("auto": one scan direction, the steep parts from the other) finds
+    away from the line's two ends. Bound: the extractor's error on
     straight noise-free 16-bit stripes is < 0.005 px; the spline through 180 points
     (1.5° apart) deviates from the circle by < 1e-4 px, and the profile's 2 × 2 samples
     per pixel are symmetric about the line, so 0.02 px leaves 4× for curvature
