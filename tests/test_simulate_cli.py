@@ -1,8 +1,10 @@
 """`scheimflux simulate` end to end in a temporary folder (small: 4 views, 3 frames)."""
 
 import json
+import shlex
 
 import numpy as np
+import pytest
 
 from scheimflux.cli._main import main
 from scheimflux.io import read_observations
@@ -53,21 +55,46 @@ def test_simulate_cli_user_errors(tmp_path, capsys):
     assert not (tmp_path / "observations.json").exists()
 
 
-def test_simulate_images_prints_the_detect_command_that_reads_them(tmp_path, capsys, monkeypatch):
-    """With --images the summary states the pixel pitch and ends with the `detect`
-    command for the rendered images, with the nominal values the observations state
-    (pitch, focal length, magnification, tilt in whole degrees, the scan): run as
-    printed, it finds the boards and the scan and records those values."""
-    import shlex
-
-    monkeypatch.chdir(tmp_path)
-    small = ["--views", "3", "--frames", "2", "--no-refine", "--seed", "2"]
-    assert main(["simulate", "--out", "sim", *small, "--images"]) == 0
+def _printed_detect_command(capsys) -> list[str]:
     text = capsys.readouterr().out
     assert "sensor 1600x1200 px at 0.0044 x 0.0044 mm" in text
     line = next(s for s in text.splitlines() if s.startswith("next, as from photos: "))
-    words = shlex.split(line.removeprefix("next, as from photos: "))
+    return shlex.split(line.removeprefix("next, as from photos: "))
+
+
+_IMAGES = ["--views", "3", "--frames", "2", "--no-refine", "--seed", "2", "--images"]
+
+
+def test_simulate_images_prints_the_detect_command(tmp_path, capsys, monkeypatch):
+    """With --images the summary states the pixel pitch and ends with the `detect`
+    command for the rendered images, with the nominal values the observations state
+    (pitch, focal length, magnification, tilt in whole degrees, the scan): the detect
+    parser reads them back as those values."""
+    from scheimflux.cli._main import build_parser
+
+    monkeypatch.chdir(tmp_path)
+    small = ["--views", "1", "--frames", "1", "--no-refine", "--seed", "2", "--images"]
+    assert main(["simulate", "--out", "sim", *small]) == 0
+    words = _printed_detect_command(capsys)
     assert words[:3] == ["scheimflux", "detect", "sim/images"]
+    args = build_parser("detect").parse_args(words[1:])
+    sim = read_observations("sim/observations.json")
+    assert tuple(args.pixel_pitch_mm) == sim.pixel_pitch_mm
+    assert args.focal_length_mm == sim.nominal.focal_length_mm == 97.0
+    assert args.magnification == sim.nominal.magnification
+    assert tuple(args.tilt_deg) == sim.nominal.tilt_deg == (3.0, 13.0)
+    assert args.scan == "sim/images/scan" and args.out == "obs.json"
+    assert args.gauge_radius_mm == sim.stage.gauge_radius_mm
+    assert args.delta_omega_deg == sim.stage.delta_omega_deg
+
+
+@pytest.mark.slow
+def test_the_printed_detect_command_reads_the_images(tmp_path, capsys, monkeypatch):
+    """Run as printed, the detect command finds the boards (those the simulated poses
+    keep whole on the sensor) and the scan, and records the nominal values. 45 s."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--out", "sim", *_IMAGES]) == 0
+    words = _printed_detect_command(capsys)
     assert main(words[1:]) == 0
     obs = read_observations("obs.json")
     sim = read_observations("sim/observations.json")
