@@ -236,3 +236,16 @@ def test_detection_does_not_depend_on_opencvs_random_state():
     # on the renderer's corners: the line crosses some (its light pulls them), so the
     # bound is the capture's drop radius's order, not the clean board's 0.05 px
     assert np.median(np.hypot(*(found[0] - truth).T)) < 0.05
+
+
+def test_dropped_views_are_summarised_by_reason():
+    """The summary line names each reason once with its views (the trial's five boards
+    cut by the border repeated one 120-character reason five times)."""
+    from scheimflux.cli._detect import _by_reason
+    from scheimflux.io._observations import DroppedView
+
+    cut = "no 11x8 checkerboard found (the whole pattern must be visible)"
+    dropped = [DroppedView(1, ("a",), cut), DroppedView(2, ("b",), "image is blank"),
+               DroppedView(4, ("c",), cut)]  # fmt: skip
+    assert _by_reason(dropped, "view") == f"views 1, 4: {cut}; view 2: image is blank"
+    assert _by_reason(dropped[1:2], "step") == "step 2: image is blank"

@@ -276,17 +276,23 @@ def run(args: argparse.Namespace) -> int:
         + f" -> {args.out}"
     )
     if report.dropped:
-        print(
-            f"dropped {len(report.dropped)} view(s): "
-            + "; ".join(f"view {d.view}: {d.reason}" for d in report.dropped)
-        )
+        print(f"dropped {len(report.dropped)} view(s): {_by_reason(report.dropped, 'view')}")
     if report.motion_summary():
         print(report.motion_summary())
     if obs.stage_target is not None and obs.stage_target.dropped:
-        print(
-            f"dropped {len(obs.stage_target.dropped)} table step(s): "
-            + "; ".join(f"step {d.view}: {d.reason}" for d in obs.stage_target.dropped)
-        )
+        dropped = obs.stage_target.dropped
+        print(f"dropped {len(dropped)} table step(s): {_by_reason(dropped, 'step')}")
     if report.previews:
         print(f"{len(report.previews)} preview(s) in {args.preview}")
     return 0
+
+
+def _by_reason(dropped, word: str) -> str:
+    """`view 1, 4, 9: <reason>; view 2: <other reason>`: the dropped captures grouped by
+    their reason (each view's own line above names its images)."""
+    groups: dict[str, list] = {}
+    for d in dropped:
+        groups.setdefault(d.reason, []).append(str(d.view))
+    return "; ".join(
+        f"{word}{'s' if len(v) > 1 else ''} {', '.join(v)}: {r}" for r, v in groups.items()
+    )
