@@ -101,6 +101,23 @@ def _ambient(level: Any, shape: tuple[int, int]) -> np.ndarray:
     return np.full(shape, level)
 
 
+def _expose(stripe, background, peak, speckle, noise_sigma, full, rng):
+    """`(clean, noisy)` grey levels of the profile `stripe` (peak 1) on `background`:
+    speckle on the laser light, then read noise (in that order of the random draws)."""
+    if speckle > 0:
+        k = 1.0 / speckle**2
+        stripe = stripe * rng.gamma(k, 1.0 / k, size=stripe.shape)
+    clean = full * (background + peak * stripe)
+    if noise_sigma > 0:
+        return clean, clean + rng.normal(0.0, noise_sigma * full, size=clean.shape)
+    return clean, clean
+
+
+def _quantised(img, full: float, bit_depth: int) -> np.ndarray:
+    """Clipped at full scale and rounded like a sensor: uint8 for 8 bits, else uint16."""
+    return np.clip(np.rint(img), 0, full).astype(np.uint8 if bit_depth == 8 else np.uint16)
+
+
 def _render_profile(
     f, h: int, w: int, sigma: float, amplitude: float, gaps, supersample: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -239,27 +256,18 @@ def render_stripe(
         offset, rel = float(reflection[0]), float(reflection[1])
         second, _ = _render_profile(lambda s: f(s) + offset, h, w, sigma, rel, gaps, supersample)
         stripe = stripe + second
-    if speckle > 0:
-        k = 1.0 / float(speckle) ** 2
-        stripe = stripe * rng.gamma(k, 1.0 / k, size=stripe.shape)
     background = _ambient(ambient, (h_img, w_img))
-    if vertical:
-        background = background.T
-    img = full * (background + float(peak) * stripe)
-    if noise_sigma > 0:
-        img = img + rng.normal(0.0, float(noise_sigma) * full, size=img.shape)
+    clean, img = _expose(stripe, background.T if vertical else background, float(peak),
+                         float(speckle), float(noise_sigma), full, rng)  # fmt: skip
 
     s = np.arange(w, dtype=np.float64)
     c = f(s)
     valid = present & (c >= -0.5) & (c <= h - 0.5)
     peak_rows = np.clip(np.rint(c).astype(np.int64), 0, h - 1)
-    clean_peak = full * (
-        background[peak_rows, np.arange(w)] + float(peak) * stripe[peak_rows, np.arange(w)]
-    )
-    saturated = valid & (clean_peak >= full)
+    saturated = valid & (clean[peak_rows, np.arange(w)] >= full)
 
     if saturate:
-        img = np.clip(np.rint(img), 0, full).astype(np.uint8 if bit_depth == 8 else np.uint16)
+        img = _quantised(img, full, bit_depth)
     if vertical:
         img = np.ascontiguousarray(img.T)
         uv = np.stack([c, s], axis=1)
@@ -298,14 +306,7 @@ def _render_curve_image(
 
     dense = _polyline_samples(pts, 0.125)
     stripe = _profile((h, w), dense, np.r_[True, np.zeros(len(dense) - 1, bool)], sigma, 1.0)
-    if speckle > 0:
-        k = 1.0 / speckle**2
-        stripe = stripe * rng.gamma(k, 1.0 / k, size=stripe.shape)
-    background = _ambient(ambient, (h, w))
-    clean = full * (background + peak * stripe)
-    img = clean
-    if noise_sigma > 0:
-        img = clean + rng.normal(0.0, noise_sigma * full, size=clean.shape)
+    clean, img = _expose(stripe, _ambient(ambient, (h, w)), peak, speckle, noise_sigma, full, rng)
     uv = dense[::8]  # every pixel of the curve's length
     valid = (uv[:, 0] >= -0.5) & (uv[:, 0] <= w - 0.5)
     valid &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= h - 0.5)
@@ -313,7 +314,7 @@ def _render_curve_image(
     c = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
     saturated = valid & (clean[r, c] >= full)
     if saturate:
-        img = np.clip(np.rint(img), 0, full).astype(np.uint8 if bit_depth == 8 else np.uint16)
+        img = _quantised(img, full, bit_depth)
     truth = StripeTruth(
         uv=uv,
         valid=valid,
