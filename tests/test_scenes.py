@@ -122,6 +122,45 @@ def test_board_poses_deterministic_and_noise(rig, board, views):
     assert np.abs(np.mean(d, axis=0)).max() < 0.05
 
 
+@pytest.fixture(scope="module")
+def tessar_x2():
+    """The 8 mm Tessar at ×2: the inclined laser plane's field is a strong trapezoid
+    (2.3 mm on one side, 3.2 mm on the other), so drawn poses cut most boards."""
+    from scheimflux.simulate import build_rig, load_lens
+
+    return build_rig(load_lens("tessar"), 2.0, refine=False)
+
+
+def test_whole_boards_are_slid_inside_the_sensor(tessar_x2):
+    """`whole=True` moves each board the border cuts across the laser plane until every
+    corner is inside: the same orientation and the same distance from the plane (so the
+    same focus and laser line), and the boards that were whole stay bit-identical."""
+    board = Checkerboard(11, 8, 0.184)
+    drawn = board_poses(tessar_x2, board, 15, seed=0)
+    kept = board_poses(tessar_x2, board, 15, seed=0, whole=True)
+    cut = [k for k, v in enumerate(drawn) if not v.visible.all()]
+    assert len(cut) >= 5  # the property under test is exercised
+    n = np.asarray(tessar_x2.laser_plane)
+    for k, (a, b) in enumerate(zip(drawn, kept)):
+        assert b.visible.all(), k
+        if k not in cut:
+            np.testing.assert_array_equal(a.points_c, b.points_c)
+            continue
+        Ra, ta = (np.asarray(x) for x in (a.T_c_b.R, a.T_c_b.translation))
+        Rb, tb = (np.asarray(x) for x in (b.T_c_b.R, b.T_c_b.translation))
+        np.testing.assert_array_equal(Ra, Rb)
+        assert not np.allclose(ta, tb)
+        # the centre's signed distance from n · X = 1 is unchanged (to rounding)
+        ca, cb = a.points_c.mean(axis=0), b.points_c.mean(axis=0)
+        da, db = ((c @ n - 1.0) / np.linalg.norm(n) for c in (ca, cb))
+        assert db == pytest.approx(da, abs=1e-9)
+
+
+def test_a_board_larger_than_the_field_stays_cut(tessar_x2):
+    big = board_poses(tessar_x2, Checkerboard(11, 8, 0.3), 6, seed=0, whole=True)
+    assert not all(v.visible.all() for v in big)
+
+
 def test_trace_is_not_the_model_but_close(rig, views):
     """The simulator is independent of the thick-lens model; they agree to a few px."""
     cam = ThickLensScheimpflug(**rig.nominal_thick_lens_params())

@@ -14,6 +14,8 @@ With --images, also rendered images for `scheimflux detect`:
                               laser line in one image);
   images/scan/frame_<i>.png                              the gauge scan's frames.
 --image-ext jpg|tif|bmp and --colour (BGR, red laser) change the files' type.
+Every board lies whole inside the sensor, as a photographer keeps a checkerboard in the
+frame (a board cut by the border is slid across the laser plane until it fits).
 Pixels come from Snell's-law ray tracing onto the tilted sensor, never from a camera
 model. The default rig is the paper's x1.5 Scheimpflug system: the shipped double Gauss
 scaled to f = 97 mm, the sensor tilted as in the paper's Table 1.
@@ -53,7 +55,8 @@ def register(subparsers) -> None:
         "--square-mm",
         type=float,
         default=None,
-        help="square size in mm (default: 0.3 mm at |beta| = 1.5, scaled with 1/|beta|)",
+        help="square size in mm (default: 0.3 mm at |beta| = 1.5, scaled with 1/|beta|, "
+        "smaller where the board would span more than 80%% of the field's narrowest side)",
     )
     p.add_argument(
         "--corner-noise-px", type=float, default=0.03, help="corner noise sigma (default: 0.03)"
@@ -134,6 +137,23 @@ def _build_rig(args):
     return build_rig(lens, args.magnification, refine=refine)
 
 
+def _default_square(rig, cols: int, rows: int, magnification: float) -> float:
+    """The default square (mm): 0.3 mm at |β| = 1.5 scaled with 1/|β|, smaller where the
+    board would span more than 80 % of the laser-plane field's narrowest side (a short
+    lens images the inclined plane as a strong trapezoid: the Tessar's field at ×2 is 2.3
+    mm on one side and 3.2 mm on the other), so that every pose can keep it whole inside
+    the sensor; rounded down to 1 µm."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    w, h = rig.sensor_size
+    sensor = [[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]
+    c = np.asarray(rig.laser_points(jnp.asarray(sensor, dtype=float)))
+    side = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)  # top, right, bottom, left
+    fit = 0.8 * min(min(side[0], side[2]) / (cols + 1), min(side[1], side[3]) / (rows + 1))
+    return min(round(0.3 * 1.5 / magnification, 3), math.floor(fit * 1000) / 1000)
+
+
 def _swap_in(staging: str, out: str, names: list[str]) -> None:
     """Move the finished outputs `names` from `staging` into `out`.
 
@@ -178,13 +198,13 @@ def run(args) -> int:
         if any(n.startswith("view_") for n in os.listdir(images)):  # an earlier --images run
             outputs.append(images)
     refuse_to_clobber(*outputs, overwrite=args.overwrite)
-    square = args.square_mm
-    if square is None:
-        square = round(0.3 * 1.5 / args.magnification, 3)
-    board = Checkerboard.parse(args.board, square)
+    board = Checkerboard.parse(args.board, 1.0 if args.square_mm is None else args.square_mm)
     check_output_folder(out)  # before the ray tracing, not after it
 
     rig = _build_rig(args)
+    if args.square_mm is None:
+        square = _default_square(rig, board.cols, board.rows, args.magnification)
+        board = Checkerboard(board.cols, board.rows, square)
     obs, truth = simulate_observations(
         rig,
         board,
@@ -196,6 +216,7 @@ def run(args) -> int:
         delta_omega_deg=args.delta_omega_deg,
         gauge_radius_mm=args.gauge_radius_mm,
         seed=args.seed,
+        whole_boards=True,
     )
     # Every output is written into a hidden staging folder first and swapped in at the
     # end, so an interrupted run (--overwrite or not) never leaves new and old files
@@ -251,6 +272,14 @@ def run(args) -> int:
         f"board: {board}; {len(obs.views)} views, {int(mask.sum())} of "
         f"{mask.size} corners seen, {stripe_pts} stripe points on the board"
     )
+    cut = [k for k in range(len(obs.views)) if not mask[k].all()]
+    if cut:
+        print(
+            f"note: the sensor's border cuts the board in {len(cut)} view(s) "
+            f"({', '.join(map(str, cut))}): it is larger than the field at those poses, and "
+            "a checkerboard detector finds only whole boards; a smaller --square-mm keeps "
+            "every board whole"
+        )
     if obs.stage is not None:
         print(
             f"gauge scan: r = {obs.stage.gauge_radius_mm:g} mm, {len(frames)} frames "

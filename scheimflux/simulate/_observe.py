@@ -153,6 +153,7 @@ def simulate_observations(
     imaging: str = "chief",
     f_number: Real | None = None,
     pupil: PupilSampling | None = None,
+    whole_boards: bool = False,
 ) -> tuple[Observations, Truth]:
     """Simulate a calibration data set by ray tracing through `rig`.
 
@@ -172,6 +173,9 @@ def simulate_observations(
       a sensor records at full aperture (coma, vignetting). Same poses and noise draws.
     - `f_number`: set the lens's working f-number first (default: the rig's stop).
     - `pupil`: the stop quadrature for `"centroid"` (default `pupil_grid(8)`, 136 rays).
+    - `whole_boards`: keep every board whole inside the sensor (`board_poses(...,
+      whole=True)`), as a checkerboard detector needs in rendered images; by default
+      the sensor's border may cut a board (its outer corners then cover the field's edge).
 
     **Returns:** `(observations, truth)`: an `Observations` (noisy pixels, NaN for corners
     not seen; `nominal` with the focal length rounded to 1 mm, |β| to 0.01 and the tilt to
@@ -182,7 +186,14 @@ def simulate_observations(
         raise ValueError(f"imaging must be 'chief' or 'centroid', got {imaging!r}")
     if f_number is not None:
         rig = eqx.tree_at(lambda r: r.lens, rig, rig.lens.with_f_number(float(f_number)))
-    views = board_poses(rig, board, int(n_views), seed=seed, noise_px=float(corner_noise_px))
+    views = board_poses(
+        rig,
+        board,
+        int(n_views),
+        seed=seed,
+        noise_px=float(corner_noise_px),
+        whole=bool(whole_boards),
+    )
     field = _field(rig)
     stripe_sets = [_board_stripe_points(rig, field, v.T_c_b, board, 2.0) for v in views]
     stripes = _trace_stripes(rig, stripe_sets, float(stripe_noise_px), seed + 1, 5.0)

@@ -194,7 +194,9 @@ def _board_pose_list(
     depth_mm: Real,
     stripe_offset_mm: Real,
     spread: Real,
-) -> list[Pose]:
+):
+    """The poses, and `pose_at(k, centre_px)`: view k's orientation and depth offset with
+    its centre moved to the laser-plane point imaged (paraxially) at `centre_px`."""
     field = _field(rig)
     rng = _rng(seed, 1)
     w, h = rig.sensor_size
@@ -209,21 +211,43 @@ def _board_pose_list(
     cu = (rng.permutation(n) + rng.uniform(0.0, 1.0, n)) / n
     cv = (rng.permutation(n) + rng.uniform(0.0, 1.0, n)) / n
     centres_px = np.stack([(lo + (hi - lo) * cu) * (w - 1), (lo + (hi - lo) * cv) * (h - 1)], -1)
-    centres = np.asarray(rig.laser_points(jnp.asarray(centres_px)))
-    poses = []
-    for k in range(n):
+    rotations, offsets = [], []
+    for _ in range(n):
         psi = rng.uniform(0.0, 2 * math.pi)
         tilt = math.radians(rng.uniform(min_tilt_deg, max_tilt_deg))
         spin = math.radians(rng.uniform(-max_spin_deg, max_spin_deg))
         R_tilt = _rodrigues(tilt * np.array([math.cos(psi), math.sin(psi), 0.0]))
-        R = R_align @ R_tilt @ _rot_z(math.pi + spin)
+        rotations.append(R_align @ R_tilt @ _rot_z(math.pi + spin))
         # Keep the laser line within `stripe_offset_mm` of the board centre: a board
         # centre δ off the laser plane puts the line δ / sin(tilt) from the centre.
         depth = min(depth_mm, stripe_offset_mm * math.sin(tilt))
-        centre = centres[k] + field.normal * rng.uniform(-depth, depth)
-        t = centre - R @ board.centre_mm
-        poses.append(Pose.from_matrix(R, t))
-    return poses
+        offsets.append(rng.uniform(-depth, depth))
+
+    def pose_at(k: int, centre_px: np.ndarray) -> Pose:
+        centre = np.asarray(rig.laser_points(jnp.asarray(centre_px[None])))[0]
+        centre = centre + field.normal * offsets[k]
+        return Pose.from_matrix(rotations[k], centre - rotations[k] @ board.centre_mm)
+
+    centres = np.asarray(rig.laser_points(jnp.asarray(centres_px)))
+    poses = [
+        Pose.from_matrix(R, c + field.normal * o - R @ board.centre_mm)
+        for R, c, o in zip(rotations, centres, offsets)
+    ]
+    return poses, centres_px, pose_at
+
+
+def _moved_inside(rig: Rig, uv: np.ndarray, coarse: np.ndarray, margin_px: Real):
+    """The pixel shift that brings a board's corners `margin_px` inside the sensor, or
+    None when they span more than the sensor. `uv`: traced pixels (NaN where the trace
+    failed), `coarse`: paraxial ones (stand-ins for the failed)."""
+    w, h = rig.sensor_size
+    p = np.where(np.isfinite(uv), uv, coarse)
+    lo = np.array([margin_px - 0.5, margin_px - 0.5]) + 1.0  # 1 px to spare
+    hi = np.array([w - 0.5 - margin_px, h - 0.5 - margin_px]) - 1.0
+    pmin, pmax = p.min(axis=0), p.max(axis=0)
+    if np.any(pmax - pmin > hi - lo):
+        return None
+    return np.where(pmin < lo, lo - pmin, 0.0) + np.where(pmax > hi, hi - pmax, 0.0)
 
 
 def board_poses(
@@ -240,6 +264,7 @@ def board_poses(
     stripe_offset_mm: Real = 0.6,
     spread: Real = 0.4,
     margin_px: Real = 10.0,
+    whole: bool = False,
 ) -> list[BoardView]:
     """`n` checkerboard poses around the laser plane, with ray-traced corners.
 
@@ -252,12 +277,17 @@ def board_poses(
     central `spread` fraction of the sensor, so the corners of all views together cover
     the sensor.
 
+    `whole=True` slides each board that the sensor's border would cut across the laser
+    plane (same orientation and depth) until every corner lands `margin_px` inside, as a
+    photographer keeps a checkerboard whole in the frame (a checkerboard detector finds
+    only whole boards); a board larger than the sensor at its pose stays cut.
+
     **Returns:** a list of [`BoardView`][] (corners visible if the trace succeeds and lands
     `margin_px` inside the sensor; `px` carries Gaussian noise `noise_px` per coordinate).
     """
     if n < 1:
         raise ValueError(f"need at least one board view, got {n}")
-    poses = _board_pose_list(
+    poses, centres_px, pose_at = _board_pose_list(
         rig,
         board,
         n,
@@ -270,10 +300,37 @@ def board_poses(
         spread,
     )
     pts_b = board.points_mm
-    X = np.stack([pts_b @ _pose_np(T)[0].T + _pose_np(T)[1] for T in poses])  # (n, M, 3)
+
+    def corners(T: Pose) -> np.ndarray:
+        return pts_b @ _pose_np(T)[0].T + _pose_np(T)[1]
+
+    X = np.stack([corners(T) for T in poses])  # (n, M, 3)
     uv, ok = trace_points(rig, X.reshape(-1, 3))
     uv = uv.reshape(n, -1, 2)
     vis = ok.reshape(n, -1) & _inside(rig, uv, margin_px)
+    if whole:
+        # Slide each cut board across the laser plane until every corner is inside: the
+        # shift from the traced pixels (paraxial ones where the trace failed), a few
+        # times, as the lens's distortion makes one step approximate.
+        field = _field(rig)
+        for _ in range(6):
+            cut = [k for k in range(n) if not vis[k].all()]
+            if not cut:
+                break
+            moved = []
+            for k in cut:
+                shift = _moved_inside(rig, uv[k], _coarse_pixels(field, X[k]), margin_px)
+                if shift is None or not np.any(shift):
+                    continue  # larger than the sensor at this pose: left as it is
+                centres_px[k] = centres_px[k] + shift
+                poses[k] = pose_at(k, centres_px[k])
+                X[k] = corners(poses[k])
+                moved.append(k)
+            if not moved:
+                break
+            uv_m, ok_m = trace_points(rig, X[moved].reshape(-1, 3))
+            uv[moved] = uv_m.reshape(len(moved), -1, 2)
+            vis[moved] = ok_m.reshape(len(moved), -1) & _inside(rig, uv[moved], margin_px)
     uv = np.where(vis[..., None], uv, np.nan)
     noisy = _noisy(uv, noise_px, _rng(seed, 2))
     return [BoardView(poses[k], X[k], vis[k], uv[k], noisy[k]) for k in range(n)]
