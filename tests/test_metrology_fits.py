@@ -208,3 +208,79 @@ def test_differentiated_fits_hold_no_host_callback(shape):
     for f in (jax.jacrev, jax.jacfwd):
         program = jax.jit(f(lambda X: fit_shape(shape, X).values)).lower(X).as_text()
         assert "callback" not in program
+
+
+def _arcs(rng, noise, r=17.5, lines=6, per_line=200):
+    """Points along `lines` arcs of a cylinder (at heights −3 … 3 mm), in order along
+    each arc, as a scan's stripes come; radial noise `noise(rng, lines, per_line)`."""
+    a = np.linspace(0.0, 2.5, per_line)
+    z = np.linspace(-3.0, 3.0, lines)
+    radial = np.cos(a)[:, None] * E1 + np.sin(a)[:, None] * E2  # (per_line, 3)
+    rr = r + noise(rng, lines, per_line)  # (lines, per_line)
+    X = CENTRE + rr[..., None] * radial[None] + z[:, None, None] * AXIS
+    return X.reshape(-1, 3)
+
+
+def _box_filtered(width):
+    """Radial noise of σ 2 µm shared by `width` neighbours along each line (a moving
+    average of white noise: ρ_k = (width − k)/width, τ = width), as stripe centres from a
+    filter several pixels wide."""
+
+    def noise(rng, lines, per_line):
+        white = rng.standard_normal((lines, per_line + width - 1))
+        k = np.ones(width) / np.sqrt(width)
+        return 2e-3 * np.stack([np.convolve(w, k, mode="valid") for w in white])
+
+    return noise
+
+
+def test_fit_uncertainty_counts_neighbours_that_share_their_errors():
+    """Errors shared by neighbouring points along each line (τ = 5): the fit-residual
+    u counted the points as independent and understated the spread of the radius over
+    repeated scans by ~√τ; estimated along the lines it matches it. 300 scans know the
+    spread to ±4 %; u (the median over 20 scans) carries the lag estimates' error (ρ_k
+    from 1200 points of which ~240 independent, τ to ~10 %): bounds 0.8–1.25."""
+    from scheimflux.metrology._gum import _fit_stats, _point_terms
+
+    rng = np.random.default_rng(11)
+    noise = _box_filtered(5)
+    sets = np.stack([_arcs(rng, noise) for _ in range(300)])
+    fit = eqx.filter_jit(jax.vmap(lambda X: fit_shape(Cylinder(), X).values[0]))
+    spread = np.std(np.asarray(fit(jnp.asarray(sets))), ddof=1)
+    ms = [measure_points(X, Cylinder()) for X in sets[:20]]
+    u = np.median([float(m.budget["fit_residual"][0]) for m in ms])
+    assert 0.8 < spread / u < 1.25
+    taus = [m.residual_stats["correlation_time"] for m in ms]
+    assert 3.5 < np.median(taus) < 6.5 and any("tau" in n for n in ms[0].notes)
+    # the independent sum (no lags) understates it by about √τ
+    f, gX, normals, _ = _point_terms(Cylinder(), jnp.asarray(sets[0]), jnp.zeros(1200, int))
+    u_indep = np.sqrt(_fit_stats(Cylinder(), f, np.asarray(normals), np.asarray(gX), 0.0)[0])
+    assert spread / u_indep[0, 0] > 1.7
+
+    # independent noise along the same lines: no lag kept, the budget as before
+    white = _arcs(rng, lambda g, n, m: 2e-3 * g.standard_normal((n, m)))
+    m = measure_points(white, Cylinder())
+    assert m.residual_stats["correlation_time"] == 1.0
+    assert not any("tau" in n for n in m.notes)
+
+
+def test_banded_sum_is_the_dense_correlated_sum():
+    """`banded_sum` against the dense `Σ_ij c_ij P_i P_jᵀ` with `c` written out: 1 on the
+    diagonal, ρ_|i−j| within a line, 0 across lines and beyond the lags."""
+    from scheimflux.metrology._gum import banded_sum, point_lines
+
+    rng = np.random.default_rng(3)
+    P = rng.standard_normal((2, 40, 2))
+    X = np.cumsum(np.full((40, 3), 0.1), axis=0)
+    X[17:] += 5.0  # a gap: a second line from point 17
+    frames = np.r_[np.zeros(30), np.ones(10)]  # and a third from point 30
+    lines = point_lines(X, frames)
+    np.testing.assert_array_equal(lines, np.r_[[0] * 17, [1] * 13, [2] * 10])
+    rho = np.array([0.7, 0.4, 0.1])
+    i, j = np.indices((40, 40))
+    lag = np.abs(i - j)
+    c = np.where(lag == 0, 1.0, 0.0)
+    for k, rk in enumerate(rho, start=1):
+        c = np.where((lag == k) & (lines[i] == lines[j]), rk, c)
+    dense = np.einsum("kid,ij,ljd->kl", P, c, P)
+    np.testing.assert_allclose(banded_sum(P, rho, lines), dense, rtol=1e-12)

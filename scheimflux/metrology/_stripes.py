@@ -20,7 +20,17 @@ from ..calibrate._own_gauge import (
     own_gauge_message,
 )
 from ..reconstruct import intersect_ray_plane
-from ._gum import Measurement, _check_labels, _checked_fit, _fit_stats, _measurement
+from ._gum import (
+    Measurement,
+    _check_labels,
+    _checked_fit,
+    _fit_stats,
+    _measurement,
+    banded_sum,
+    correlation_note,
+    lag_correlation,
+    point_lines,
+)
 from ._shapes import AbstractShape
 
 __all__ = ["chain_function", "measure_stripes"]
@@ -295,15 +305,19 @@ def measure_stripes(
             + (f"; counted exact: {', '.join(exact)}" if exact else "")
         )
     s2_px = 0.0
+    lines = point_lines(X, fi, lab)
+    rho = lag_correlation(fit.residuals, lines) if shape.n_params() else np.zeros(0)
     if sigma_px is not None:
-        terms["stripe_noise"] = sigma_px**2 * np.einsum("kni,lni->kl", G_uv, G_uv)
+        terms["stripe_noise"] = sigma_px**2 * banded_sum(G_uv, rho, lines)
         if shape.n_params():
             rj = np.einsum("nmj,nji->nmi", normals, J_uv)  # ∂r/∂uv per point
             s2_px = sigma_px**2 * float(np.mean(np.sum(rj * rj, axis=2)))
     else:
         notes.append("stripe noise not evaluated (no sigma_px): the fit residual carries it")
-    C_fit, stats = _fit_stats(shape, fit, normals, gX, s2_px)
+    C_fit, stats = _fit_stats(shape, fit, normals, gX, s2_px, rho, lines)
     terms["fit_residual"] = C_fit
+    if (note := correlation_note(rho)) is not None:
+        notes.append(note)
     if n - int(keep.sum()):
         notes.append(f"{n - int(keep.sum())} of {n} pixels gave no point and were left out")
     cov = getattr(cal, "coverage", None)
