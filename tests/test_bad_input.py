@@ -211,6 +211,7 @@ def test_simulate_interrupted_with_overwrite_keeps_the_old_set(tmp_path, capsys,
         raise KeyboardInterrupt
 
     monkeypatch.setattr(simulate_cli, "_build_rig", lambda args: None)
+    monkeypatch.setattr(simulate_cli, "_default_square", lambda *args: 0.3)
     monkeypatch.setattr(observe, "simulate_observations", lambda *a, **k: (tiny, None))
     monkeypatch.setattr(observe, "write_truth", killed)
     code, _, err = _run(capsys, "simulate", "--out", str(out), *_SMALL, "--overwrite")
@@ -238,6 +239,7 @@ def test_simulate_output_appearing_during_the_run_is_kept(tmp_path, capsys, monk
         (out / "truth.json").write_text("theirs")
 
     monkeypatch.setattr(simulate_cli, "_build_rig", lambda args: None)
+    monkeypatch.setattr(simulate_cli, "_default_square", lambda *args: 0.3)
     monkeypatch.setattr(observe, "simulate_observations", lambda *a, **k: (tiny, None))
     monkeypatch.setattr(observe, "write_truth", racing_write_truth)
     code, _, err = _run(capsys, "simulate", "--out", str(out), *_SMALL)
@@ -439,3 +441,26 @@ def test_a_folder_of_frames_given_as_a_stripes_file_says_how_to_make_one(tmp_pat
     with pytest.raises(ValueError, match="is a folder") as err:
         read_stripes(str(empty))
     assert "extract" not in str(err.value)
+
+
+def test_a_truncated_image_is_unreadable_and_opencv_stays_quiet(tmp_path, capfd):
+    """A TIFF cut short reads as None (the commands then name the file once, as
+    unreadable), and the decoder's own complaint does not reach the terminal; a whole
+    image reads back as stored, grey or BGR with the alpha dropped."""
+    import cv2
+
+    from scheimflux._image import read_grey, read_image
+
+    grey = (np.arange(120 * 160) % 251).astype(np.uint8).reshape(120, 160)
+    bgra = np.dstack([grey, grey // 2, grey // 3, np.full_like(grey, 255)])
+    cv2.imwrite(str(tmp_path / "g.tif"), grey)
+    cv2.imwrite(str(tmp_path / "c.png"), bgra)
+    data = (tmp_path / "g.tif").read_bytes()
+    (tmp_path / "cut.tif").write_bytes(data[: len(data) // 3])
+    capfd.readouterr()
+    assert read_image(tmp_path / "cut.tif") is None and read_grey(tmp_path / "cut.tif") is None
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    np.testing.assert_array_equal(read_image(tmp_path / "g.tif"), grey)
+    np.testing.assert_array_equal(read_image(tmp_path / "c.png"), bgra[:, :, :3])
+    assert read_grey(tmp_path / "c.png").shape == (120, 160)
