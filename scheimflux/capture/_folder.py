@@ -23,8 +23,7 @@ import dataclasses
 import os
 import re
 
-import cv2
-import numpy as np
+from .._image import read_image as read_image
 
 __all__ = ["IMAGE_SUFFIXES", "CaptureView", "find_captures", "natural_key", "read_image"]
 
@@ -120,22 +119,3 @@ def find_captures(folder: str | os.PathLike) -> tuple[list[CaptureView], list[st
         else:
             views.append(CaptureView(k, slot.get("board"), slot.get("stripe")))
     return views, ignored
-
-
-def read_image(path: str) -> np.ndarray | None:
-    """An image file as stored: `(H, W)` grey or `(H, W, 3)` BGR (alpha dropped), 8 or
-    16 bits (EXIF orientation is ignored: pixels stay in sensor order). None when the file
-    cannot be read or decoded."""
-    try:
-        image = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    if image is None or image.size == 0:
-        return None
-    if image.ndim == 3 and image.shape[2] == 4:
-        image = image[:, :, :3]
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim not in (2, 3):
-        return None
-    return image

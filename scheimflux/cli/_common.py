@@ -97,18 +97,9 @@ def list_images(folder: str, suffixes: tuple[str, ...]) -> list[str]:
 
 def read_grey(path: str) -> np.ndarray | None:
     """The image as a 2-D array (uint8/uint16/float), or None when it cannot be read."""
-    import cv2
+    from .._image import read_grey as _read_grey
 
-    try:
-        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-        if image is None or image.size == 0:
-            return None
-        if image.ndim == 3:
-            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cv2.cvtColor(image, code)
-    except cv2.error:
-        return None
-    return image if image.ndim == 2 else None
+    return _read_grey(path)
 
 
 def progress(items, desc: str, unit: str):

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from .._image import read_image as read_image
 from ._extract import extract_stripe
 from ._result import StripeResult
 
@@ -124,27 +125,6 @@ def numbering_refusal(folder: str, problem: str, step: str) -> str:
         "the missing image back (an image without a line keeps its place as an empty "
         "frame) or move the odd one out"
     )
-
-
-def read_image(path: str) -> np.ndarray | None:
-    """The image as stored (grey (H, W) or BGR (H, W, 3); alpha dropped), or None when it
-    cannot be read."""
-    import cv2
-
-    try:
-        image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    if image is None or image.size == 0 or image.ndim not in (2, 3):
-        return None
-    if image.ndim == 3:
-        if image.shape[2] == 1:
-            image = image[:, :, 0]
-        elif image.shape[2] >= 3:
-            image = np.ascontiguousarray(image[:, :, :3])
-        else:
-            return None
-    return image
 
 
 @dataclasses.dataclass(frozen=True)
