@@ -231,3 +231,26 @@ def test_implicit_derivative_wrt_an_observation_matches_finite_differences():
     fd = (plane_distance(u0 + h) - plane_distance(u0 - h)) / (2 * h)
     assert float(jnp.abs(deriv)) > 0
     np.testing.assert_allclose(deriv, fd, rtol=1e-3)
+
+
+@pytest.mark.parametrize("tilt", [(3.0, -13.0), (13.0, 3.0)])
+def test_a_wrong_nominal_tilt_is_named_in_the_error(tilt):
+    """A nominal tilt with a sign flipped or its two angles swapped stops the camera
+    solve (rank-deficient or unconverged); the error leads with the nominal tilt and the
+    tilt the boards show (the closed-form start's: the truth is (3.0, 13.3)°)."""
+    import dataclasses
+
+    from scheimflux.calibrate import NotConvergedError, RankDeficientError, calibrate_camera
+    from scheimflux.calibrate._camera import _tilt_disagreement
+
+    obs, _ = simulate_observations(
+        paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=4, stage_scan=False, seed=0
+    )
+    wrong = dataclasses.replace(obs, nominal=dataclasses.replace(obs.nominal, tilt_deg=tilt))
+    with pytest.raises((RankDeficientError, NotConvergedError)) as e:
+        calibrate_camera(wrong)
+    text = str(e.value)
+    assert text.startswith(f"the nominal tilt (phi, theta) = ({tilt[0]:.3g}, {tilt[1]:.3g}) deg")
+    assert "(3.0, 13.4) deg" in text and "--init closed-form" in text
+    # the right nominal tilt raises no such hint
+    assert _tilt_disagreement(obs, nominal_thick_lens(obs)) is None
