@@ -17,14 +17,16 @@ from ._camera import (
     CameraCalibration,
     _default_distortion,
     _rms_px,
+    _tilt_disagreement,
     calibrate_camera,
     pixel_footprint_mm,
 )
 from ._gates import REJECT_SIGMA, screen_field, screen_observations
 from ._gauge import profile_notes
+from ._init import nominal_thick_lens
 from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
-from ._quality import _gated
+from ._quality import _gated, _hint_text
 from ._rejection import (
     _left_out_indices,
     _outliers,
@@ -33,7 +35,7 @@ from ._rejection import (
     outlier_counts,
 )
 from ._result import Calibration
-from ._solve import RankDeficientError, least_squares
+from ._solve import NotConvergedError, RankDeficientError, least_squares
 from ._stage import _gauge_rms, calibrate_stage
 from ._stage_table import stage_extra_freeze, table_target_start
 
@@ -158,7 +160,7 @@ def calibrate(
         if reject is not None:
             rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
         cal = dataclasses.replace(cal, axis_profile=cam_cal.axis_profile)
-        return _gated(cal, {**outside, **rejected}, None, throw, notes)
+        return _gated(cal, {**outside, **rejected}, None, throw, notes, _tilt_hint(obs, cam_cal))
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
@@ -198,10 +200,15 @@ def calibrate(
                 max_steps=max_steps,
                 throw=throw,
             )
-        except RankDeficientError as err:
-            if hint is None:
+        except (RankDeficientError, NotConvergedError) as err:
+            tilt = _hint_text(_tilt_hint(obs, cam_cal))
+            if tilt is None and (hint is None or isinstance(err, NotConvergedError)):
                 raise
-            raise RankDeficientError(f"{err}; {hint}") from None
+            message = f"{err}" if tilt is None else f"{tilt} (the joint solve stopped: {err})"
+            message += "" if hint is None else f"; {hint}"
+            if isinstance(err, NotConvergedError):
+                raise NotConvergedError(message, err.fit) from None
+            raise RankDeficientError(message) from None
         params = fit.params
         fits["joint"] = fit
     outliers = {"threshold_sigma": reject}
@@ -239,7 +246,17 @@ def calibrate(
         left_out=left_out,
         axis_profile=cam_cal.axis_profile,
     )
-    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hint)
+    hints = (_tilt_hint(obs, cam_cal), hint)
+    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hints)
+
+
+def _tilt_hint(obs: Observations, cam_cal):
+    """For a nominal start: a function giving the nominal-tilt hint (the tilt the boards
+    show where it disagrees with the nominal one, `_camera._tilt_disagreement`), for a
+    failed gate; None otherwise."""
+    if cam_cal.init != "nominal":
+        return None
+    return lambda: _tilt_disagreement(obs, nominal_thick_lens(obs))
 
 
 def _gauge_start_hint(params: SystemParams, data, obs: Observations) -> str | None:

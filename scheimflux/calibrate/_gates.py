@@ -82,12 +82,15 @@ class Quality:
       pass's `threshold_sigma`.
     - `warnings`: one-line notes that do not fail the calibration.
     - `plane`: the laser plane's conditioning ([`plane_conditioning`][]), or None.
+    - `hint`: where a gate failed, what to check first (also among the warnings), or
+      None.
     """
 
     gates: tuple[Gate, ...]
     rejected: dict
     warnings: tuple[str, ...] = ()
     plane: dict | None = None
+    hint: str | None = None
 
     @property
     def passed(self) -> bool:

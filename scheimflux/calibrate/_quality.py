@@ -32,18 +32,19 @@ def _gated(
     conditioning,
     throw: bool,
     notes: tuple[str, ...] = (),
-    hint: str | None = None,
+    hint=None,
 ) -> Calibration:
     """`cal` with its quality gates assessed and its coverage of the sensor recorded;
     `QualityError` (with `throw`) if a gate fails. `notes`: the solves' decisions and
     findings (the pupil terms' test, the gauge profile's), added to the warnings.
     `hint`: what to check first, said (in the error and the warnings) only when a gate
-    fails."""
+    fails: a string, None, or a sequence of them and of functions that return one (run
+    only then)."""
     quality = assess_quality(cal, rejected, conditioning)
-    if hint is not None and not quality.passed:
+    hint = None if quality.passed else _hint_text(hint)
+    if hint is not None:
         notes = (*notes, hint)
-    else:
-        hint = None
+        quality = dataclasses.replace(quality, hint=hint)
     if notes:
         quality = dataclasses.replace(quality, warnings=quality.warnings + tuple(notes))
     coverage = coverage_from_data(cal.data, cal.sensor_size)
@@ -59,6 +60,14 @@ def _gated(
             cal,
         )
     return cal
+
+
+def _hint_text(hint) -> str | None:
+    """`_gated`'s `hint` as one string (None when it says nothing)."""
+    items = hint if isinstance(hint, (list, tuple)) else (hint,)
+    texts = [h() if callable(h) else h for h in items]
+    texts = [t for t in texts if t]
+    return "; ".join(texts) if texts else None
 
 
 # A board within this angle of the laser plane carries a poorly determined stripe line.

@@ -345,6 +345,7 @@ def run(args) -> int:
         refusals.append(
             "calibration failed its quality gates: "
             + "; ".join(g.message for g in quality.failures)
+            + ("" if quality.hint is None else f"; {quality.hint}")
             + " (--force writes it anyway)"
         )
     if refusals:
