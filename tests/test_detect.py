@@ -50,6 +50,25 @@ def test_corners_match_truth(cam, pose_kw):
     assert err.max() <= 0.1, err.max()  # also proves the order: a swap would be > 10 px
 
 
+@pytest.mark.parametrize("rot_deg", [3.0, 93.0, 273.0])
+def test_orientation_of_a_board_that_fills_the_image(cam, rot_deg):
+    """The image cropped 0.3 square beyond the outer corners: the squares diagonally
+    outside them (half a square beyond) are off the image, the pattern is still found.
+    Its orientation is read from every square: before, from those four only, it fell
+    back on "corner 0 nearest the top-left" and reversed two of these three boards
+    (corners 511 px off)."""
+    f, truth = _render(cam, SMALL, rot_deg=rot_deg)
+    img = render_checkerboard(
+        SMALL, f, shape=(600, 800), blur_sigma_px=1.0, noise_sigma=0.01, seed=1
+    )
+    step = np.median(np.linalg.norm(np.diff(truth.reshape(6, 7, 2), axis=1), axis=-1))
+    lo = np.floor(truth.min(axis=0) - 0.3 * step).astype(int)
+    hi = np.ceil(truth.max(axis=0) + 0.3 * step).astype(int)
+    res = detect_checkerboard(img[lo[1] : hi[1], lo[0] : hi[0]], SMALL)
+    assert res.found and "ambiguous" not in res.message, res.message
+    assert np.hypot(*(res.corners_px + lo - truth).T).max() <= 0.1
+
+
 def test_full_sensor_12bit_tilted(cam):
     board = Checkerboard(11, 8, 0.3)
     f, truth = _render(

@@ -61,32 +61,34 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out
 
 
-def _outer_squares(cols: int, rows: int, s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (board mm) of the four squares at the pattern's outer corners, and colours.
+def _squares(cols: int, rows: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (board mm) of every square of the pattern, and their colours.
 
     Colour 0 is black: the square diagonally outside corner 0 is black and colours
-    alternate along rows and columns; the pattern spans `cols + 1` squares across, so
-    the square outside corner `cols - 1` of the first row is black when `cols` is even.
+    alternate along rows and columns (`cols + 1` squares across, `rows + 1` down).
+    All of them are read, not only the four at the outer corners: those lie half a
+    square beyond the outer corners and fall off the image first when a board fills
+    it, and the laser line may cross any one of them.
     """
-    centres = np.array(
-        [
-            [-0.5 * s, -0.5 * s],
-            [(cols - 0.5) * s, -0.5 * s],
-            [-0.5 * s, (rows - 0.5) * s],
-            [(cols - 0.5) * s, (rows - 0.5) * s],
-        ]
-    )
-    colours = np.array([0, cols % 2, rows % 2, (cols + rows) % 2])
-    return centres, colours
+    i, j = np.meshgrid(np.arange(cols + 1), np.arange(rows + 1))
+    centres = np.stack([(i.ravel() - 0.5) * s, (j.ravel() - 0.5) * s], axis=1)
+    return centres, (i.ravel() + j.ravel()) % 2
 
 
-def _square_brightness(img, H, centre, s) -> float:
+def _square_brightness(img, H, centres, s) -> np.ndarray:
+    """`(K,)` median grey level of the central half of each square (board mm centres),
+    NaN where fewer than 5 of its 25 samples lie in the image."""
     g = np.linspace(-0.25, 0.25, 5) * s
     gx, gy = np.meshgrid(g, g)
-    pts = np.stack([gx.ravel() + centre[0], gy.ravel() + centre[1]], axis=1)
+    offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (25, 2)
+    pts = (centres[:, None, :] + offsets[None]).reshape(-1, 2)
     uv = cv2.perspectiveTransform(pts[None], H)[0]
-    vals = _sample(img, uv)
-    return float(np.nanmedian(vals)) if np.isfinite(vals).sum() >= 5 else np.nan
+    vals = _sample(img, uv).reshape(len(centres), -1)
+    enough = np.isfinite(vals).sum(axis=1) >= 5
+    out = np.full(len(centres), np.nan)
+    if enough.any():
+        out[enough] = np.nanmedian(vals[enough], axis=1)
+    return out
 
 
 def _orient(grid: np.ndarray, img: np.ndarray, board, mirrored: bool) -> tuple[np.ndarray, str]:
@@ -99,7 +101,7 @@ def _orient(grid: np.ndarray, img: np.ndarray, board, mirrored: bool) -> tuple[n
             if c.shape[:2] == (rows, cols):
                 cands.append(np.ascontiguousarray(c))
     xy = np.asarray(board.points_mm, dtype=np.float64)[:, :2]
-    centres, colours = _outer_squares(cols, rows, s)
+    centres, colours = _squares(cols, rows, s)
     scored = []
     for c in cands:
         du = (c[:, -1] - c[:, 0]).mean(axis=0)
@@ -110,10 +112,11 @@ def _orient(grid: np.ndarray, img: np.ndarray, board, mirrored: bool) -> tuple[n
         H, _ = cv2.findHomography(xy, c.reshape(-1, 2), 0)
         if H is None:
             continue
-        b = np.array([_square_brightness(img, H, p, s) for p in centres])
+        b = _square_brightness(img, H, centres, s)
         ok = np.isfinite(b)
         white, black = ok & (colours == 1), ok & (colours == 0)
-        score = b[white].mean() - b[black].mean() if white.any() and black.any() else np.nan
+        # medians: the laser line or a glint brightens a few squares
+        score = np.median(b[white]) - np.median(b[black]) if white.any() and black.any() else np.nan
         scored.append((score, c))
     if not scored:
         return grid, "could not resolve the board's orientation (degenerate corner grid)"
@@ -123,9 +126,9 @@ def _orient(grid: np.ndarray, img: np.ndarray, board, mirrored: bool) -> tuple[n
         best = finite[0]
         if len(finite) == 1 or best[0] - finite[1][0] > 0.1:
             return best[1], ""
-        note = "orientation ambiguous (outer squares too faint or symmetric colours)"
+        note = "orientation ambiguous (squares too faint, or the board's colours symmetric)"
     else:
-        note = "orientation ambiguous: the board's colours are symmetric"
+        note = "orientation ambiguous: no square of the board could be read in the image"
     # fall back on the order whose corner 0 is nearest the image's top-left
     best = min(scored, key=lambda t: float(np.hypot(*t[1][0, 0])))
     return best[1], note + "; corner 0 taken nearest the image's top-left"
