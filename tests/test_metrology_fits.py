@@ -253,7 +253,7 @@ def test_fit_uncertainty_counts_neighbours_that_share_their_errors():
     taus = [m.residual_stats["correlation_time"] for m in ms]
     assert 3.5 < np.median(taus) < 6.5 and any("tau" in n for n in ms[0].notes)
     # the independent sum (no lags) understates it by about √τ
-    f, gX, normals, _ = _point_terms(Cylinder(), jnp.asarray(sets[0]), jnp.zeros(1200, int))
+    f, gX, normals, _ = _point_terms(Cylinder(), jnp.asarray(sets[0]), jnp.zeros(1200, jnp.int32))
     u_indep = np.sqrt(_fit_stats(Cylinder(), f, np.asarray(normals), np.asarray(gX), 0.0)[0])
     assert spread / u_indep[0, 0] > 1.7
 
