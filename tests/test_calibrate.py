@@ -261,14 +261,14 @@ def test_a_wrong_nominal_tilt_is_named_in_the_error(tilt):
     assert _tilt_disagreement(obs, nominal_thick_lens(obs)) is None
 
 
+@pytest.mark.slow  # 35 s alone (the joint solve's compile): the default suite keeps the camera's
 def test_a_nominal_tilt_4_deg_off_is_named_where_the_joint_solve_stops():
     """(7, 13)° against the boards' (2.97, 13.36)°: the camera solve converges, the joint
     one stops rank-deficient (the laser plane's offset against the boards' depths); its
-    error leads with the tilt. Hints for a failed gate are run only on failure."""
+    error leads with the tilt."""
     import dataclasses
 
     from scheimflux.calibrate import RankDeficientError, calibrate
-    from scheimflux.calibrate._quality import _hint_text
 
     obs, _ = simulate_observations(
         paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=4, stage_scan=False, seed=0
@@ -276,5 +276,11 @@ def test_a_nominal_tilt_4_deg_off_is_named_where_the_joint_solve_stops():
     off = dataclasses.replace(obs, nominal=dataclasses.replace(obs.nominal, tilt_deg=(7.0, 13.0)))
     with pytest.raises(RankDeficientError, match=r"^the nominal tilt \(phi, theta\) = \(7, 13\)"):
         calibrate(off, throw=False)
-    assert _hint_text((None, lambda: None)) is None
+
+
+def test_gate_hints_are_joined_and_functions_run():
+    """`_gated`'s hints: strings and functions (run only when a gate failed), joined."""
+    from scheimflux.calibrate._quality import _hint_text
+
+    assert _hint_text(None) is None and _hint_text((None, lambda: None)) is None
     assert _hint_text((lambda: "a", None, "b")) == "a; b" and _hint_text("c") == "c"
