@@ -12,7 +12,7 @@ import os
 import re
 import sys
 
-import numpy as np
+from .._image import read_grey as read_grey  # the one reader, for the commands
 
 
 class CLIError(Exception):
@@ -93,13 +93,6 @@ def list_images(folder: str, suffixes: tuple[str, ...]) -> list[str]:
         if n.lower().endswith(suffixes) and os.path.isfile(os.path.join(folder, n))
     ]
     return [os.path.join(folder, n) for n in sorted(names, key=natural_key)]
-
-
-def read_grey(path: str) -> np.ndarray | None:
-    """The image as a 2-D array (uint8/uint16/float), or None when it cannot be read."""
-    from .._image import read_grey as _read_grey
-
-    return _read_grey(path)
 
 
 def progress(items, desc: str, unit: str):
