@@ -75,12 +75,57 @@ def test_simulate_keeps_every_board_whole(tmp_path, capsys):
 
 
 def test_the_default_square_of_the_paper_rig_is_unchanged():
-    import argparse
-
+    from scheimflux.cli._main import build_parser
     from scheimflux.cli._simulate import _build_rig, _default_square
 
-    rig = _build_rig(argparse.Namespace(lens="double-gauss", magnification=1.5, no_refine=True))
+    args = build_parser("simulate").parse_args(["simulate", "--out", "x", "--no-refine"])
+    rig = _build_rig(args)
     assert _default_square(rig, 11, 8, 1.5) == 0.3
+
+
+def test_simulate_another_camera_and_laser(tmp_path, capsys):
+    """`--sensor`, `--pixel-pitch-um`, `--laser-angle-deg` and `--laser-azimuth-deg` build
+    that rig: the truth states the sensor and pitch, every traced pixel lies on it, and the
+    laser plane's normal leans by the given angle towards the given azimuth (n̂ = (cos α
+    cos ψ, cos α sin ψ, sin α) in the camera frame, `laser_plane_from_angles`)."""
+    import math
+
+    out = tmp_path / "sim"
+    rig = ["--sensor", "2448x2048", "--pixel-pitch-um", "3.45", "--laser-angle-deg", "45",
+           "--laser-azimuth-deg", "90", "--lens", "achromat", "--magnification", "1"]  # fmt: skip
+    assert main(["simulate", "--out", str(out), *rig, *_SMALL]) == 0
+    assert "sensor 2448x2048 px at 0.00345 x 0.00345 mm" in capsys.readouterr().out
+    truth = read_truth(out / "truth.json")
+    assert truth.rig["sensor"] == [2448, 2048]
+    np.testing.assert_allclose(truth.rig["pixel_pitch_mm"], [0.00345, 0.00345])
+    n = np.asarray(truth.laser_plane, dtype=float)
+    n = n / np.linalg.norm(n)
+    a, psi = math.radians(45), math.radians(90)
+    np.testing.assert_allclose(n, [math.cos(a) * math.cos(psi), math.cos(a) * math.sin(psi),
+                                   math.sin(a)], atol=1e-12)  # fmt: skip
+    px = truth.corners_px[np.isfinite(truth.corners_px).all(axis=-1)]
+    assert len(px) and (px >= -0.5).all() and (px[:, 0] <= 2447.5).all()
+    assert (px[:, 1] <= 2047.5).all()
+    obs = read_observations(out / "observations.json")
+    assert obs.pixel_pitch_mm == (0.00345, 0.00345)
+
+
+def test_simulate_rig_options_refused_with_a_reason(tmp_path, capsys):
+    cases = [
+        (["--sensor", "2448"], "WIDTHxHEIGHT"),
+        (["--sensor", "20x20"], "64 to 20000"),
+        (["--pixel-pitch-um", "3", "4", "5"], "one or two"),
+        (["--pixel-pitch-um", "0"], "0.5 to 50"),
+        (["--laser-angle-deg", "0"], "(0, 90]"),
+        (["--laser-azimuth-deg", "90"], "needs --laser-angle-deg"),
+        (["--bit-depth", "12"], "needs --images"),
+        (["--bit-depth", "16", "--images", "--image-ext", "jpg"], "PNG or TIFF"),
+    ]
+    for extra, words in cases:
+        assert main(["simulate", "--out", str(tmp_path / "x"), *extra]) == 1, extra
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "x").exists()
 
 
 def _printed_detect_command(capsys) -> list[str]:

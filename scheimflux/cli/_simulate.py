@@ -49,6 +49,34 @@ def register(subparsers) -> None:
     p.add_argument(
         "--magnification", type=float, default=1.5, help="|beta| on the axis (default: 1.5)"
     )
+    p.add_argument(
+        "--sensor",
+        default="1600x1200",
+        metavar="WxH",
+        help="sensor size in pixels (default: %(default)s)",
+    )
+    p.add_argument(
+        "--pixel-pitch-um",
+        type=float,
+        nargs="+",
+        default=[4.4],
+        metavar="UM",
+        help="pixel pitch in micrometres: one value, or the x and y pitch (default: 4.4)",
+    )
+    p.add_argument(
+        "--laser-angle-deg",
+        type=float,
+        default=None,
+        help="angle between the laser plane and the optical axis, in (0, 90] (default: 60; "
+        "for the default lens the plane of the paper's rig)",
+    )
+    p.add_argument(
+        "--laser-azimuth-deg",
+        type=float,
+        default=0.0,
+        help="direction the laser plane's normal leans towards, about the optical axis "
+        "(0 = the sensor's +u, 90 = +v; default: %(default)s); with --laser-angle-deg",
+    )
     p.add_argument("--views", type=int, default=15, help="checkerboard poses (default: 15)")
     p.add_argument("--board", default="11x8", help="inner corners COLSxROWS (default: %(default)s)")
     p.add_argument(
@@ -105,6 +133,14 @@ def register(subparsers) -> None:
         help="with --images: file type (default: %(default)s)",
     )
     p.add_argument("--colour", action="store_true", help="with --images: BGR images, red laser")
+    p.add_argument(
+        "--bit-depth",
+        type=int,
+        choices=(8, 12, 16),
+        default=8,
+        help="with --images: bits per sample; 12 and 16 are written as 16-bit PNG or TIFF "
+        "(12-bit data in the low bits, as most machine-vision cameras; default: 8)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
 
@@ -118,6 +154,39 @@ def _check(args) -> None:
         raise CLIError(f"--frames must be >= 0, got {args.frames}")
     require_positive(args, "corner_noise_px", "stripe_noise_px", zero_ok=True)
     require_positive(args, "gauge_radius_mm", "square_mm")
+    _sensor_size(args)
+    _pixel_pitch_mm(args)
+    if args.laser_angle_deg is not None and not 0.0 < args.laser_angle_deg <= 90.0:
+        raise CLIError(f"--laser-angle-deg must be in (0, 90], got {args.laser_angle_deg:g}")
+    if args.laser_angle_deg is None and args.laser_azimuth_deg != 0.0:
+        raise CLIError("--laser-azimuth-deg needs --laser-angle-deg (the plane's angle)")
+    if args.bit_depth != 8 and (not args.images or args.image_ext in ("jpg", "bmp")):
+        why = "--images" if not args.images else f"PNG or TIFF images (not {args.image_ext})"
+        raise CLIError(f"--bit-depth {args.bit_depth} needs {why}")
+
+
+def _sensor_size(args) -> tuple[int, int]:
+    """`--sensor WxH` as `(w, h)` pixels."""
+    try:
+        w, h = (int(x) for x in str(args.sensor).lower().split("x"))
+    except ValueError:
+        raise CLIError(f"--sensor must be WIDTHxHEIGHT in pixels, e.g. 2448x2048, got "
+                       f"{args.sensor!r}") from None  # fmt: skip
+    if not (64 <= w <= 20000 and 64 <= h <= 20000):
+        raise CLIError(f"--sensor {w}x{h}: each side must be 64 to 20000 pixels")
+    return w, h
+
+
+def _pixel_pitch_mm(args) -> tuple[float, float]:
+    """`--pixel-pitch-um` (one value or x and y) as `(dx, dy)` in mm."""
+    p = list(args.pixel_pitch_um)
+    if len(p) not in (1, 2):
+        raise CLIError(f"--pixel-pitch-um takes one or two values, got {len(p)}")
+    if not all(math.isfinite(x) and 0.5 <= x <= 50.0 for x in p):
+        raise CLIError(f"--pixel-pitch-um must be 0.5 to 50 um, got {' '.join(map(str, p))}")
+    dx, dy = (p[0], p[0]) if len(p) == 1 else p
+    # µm → mm on the typed decimal (3.45 / 1000 is 0.0034500000000000004 in binary)
+    return float(f"{dx!r}e-3"), float(f"{dy!r}e-3")
 
 
 def _build_rig(args):
@@ -125,16 +194,24 @@ def _build_rig(args):
     from ..simulate._rig import PAPER_PHI, PAPER_THETA, _laser_plane_for_tilt, build_rig
 
     refine = not args.no_refine
+    sensor = dict(sensor=_sensor_size(args), pixel_pitch_mm=_pixel_pitch_mm(args))
     if args.lens == "double-gauss":
         # The paper's rig (paper_rig), at any magnification: f = 97 mm, stop 2.5 mm, the
         # laser plane whose paraxial Scheimpflug conjugate has the paper's tilt.
         base = load_lens("double-gauss")
         lens = base.scaled(97.0 / float(paraxial(base).efl), name="double-gauss-f97")
         lens = lens.with_stop_semi_diameter(2.5)
-        plane = _laser_plane_for_tilt(paraxial(lens), args.magnification, PAPER_PHI, PAPER_THETA)
-        return build_rig(lens, args.magnification, laser_plane=plane, refine=refine)
-    lens = resolve_lens(args.lens)
-    return build_rig(lens, args.magnification, refine=refine)
+        if args.laser_angle_deg is None:
+            plane = _laser_plane_for_tilt(
+                paraxial(lens), args.magnification, PAPER_PHI, PAPER_THETA
+            )
+            return build_rig(lens, args.magnification, laser_plane=plane, refine=refine, **sensor)
+    else:
+        lens = resolve_lens(args.lens)
+    angle = 60.0 if args.laser_angle_deg is None else args.laser_angle_deg
+    return build_rig(
+        lens, args.magnification, angle, args.laser_azimuth_deg, refine=refine, **sensor
+    )
 
 
 def _default_square(rig, cols: int, rows: int, magnification: float) -> float:
@@ -243,6 +320,7 @@ def run(args) -> int:
                 layout=args.image_layout,
                 ext=args.image_ext,
                 colour=args.colour,
+                bit_depth=args.bit_depth,
                 ambient=args.ambient,
                 seed=args.seed,
                 overwrite=True,
