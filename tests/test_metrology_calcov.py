@@ -119,6 +119,10 @@ def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
                                    G @ S[np.ix_(idx, idx)] @ G, rtol=1e-9)
         terms[how if isinstance(how, str) else "given"] = m.budget["calibration"][0]
     assert terms["groups"] == terms["given"]
+    # noise-free pixels: the residuals are within the stated stripe noise, nothing is left
+    # to the fit-residual term, and the summary says why it is 0 (not "u = 0.000 µm")
+    assert m.budget["fit_residual"][0] == 0
+    assert "fit residual      u = 0 µm (the residuals are within the stated" in m.summary()
 
 
 def _heteroscedastic_problem():

@@ -107,6 +107,13 @@ class Measurement:
         """Expanded uncertainty `k u` (mm)."""
         return self.coverage_factor * self.std
 
+    def _within(self) -> bool:
+        """Whether the fit's residual variance is no more than the stated stripe noise
+        explains (the fit-residual term is then 0: nothing left to attribute)."""
+        st = self.residual_stats
+        s2, s2_px = st.get("variance_factor"), st.get("stripe_noise_variance", 0.0)
+        return bool(s2_px and s2 is not None and s2 <= s2_px)
+
     def summary(self) -> str:
         """A few lines: each value ± U (k = 2) with its budget, and the residuals.
 
@@ -124,6 +131,8 @@ class Measurement:
             for src in SOURCES:
                 b = self.budget.get(src)
                 text = "not included" if b is None else f"u = {_um(b[k])} µm"
+                if src == "fit_residual" and b is not None and b[k] == 0 and self._within():
+                    text = "u = 0 µm (the residuals are within the stated stripe noise)"
                 lines.append(f"    {src.replace('_', ' '):<17} {text}")
         st = self.residual_stats
         if self.n_params:
