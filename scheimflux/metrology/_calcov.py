@@ -187,20 +187,32 @@ def residual_lag_correlation(r, gains=None, J=None, *, max_lag: int = MAX_LAG) -
     a = np.ones(len(r)) if gains is None else np.asarray(gains, dtype=np.float64)
     used = (r != 0) if J is None else (np.any(np.asarray(J) != 0, axis=1) | (r != 0))
     used &= a > 0
-    n = int(used.sum())
+    z = np.where(used, r / np.sqrt(np.where(used, a, 1.0)), 0.0)
+    return lag_correlations(z, lambda k: used[:-k] & used[k:], int(used.sum()), max_lag)
+
+
+def lag_correlations(z, pairs, n: int, max_lag: int = MAX_LAG) -> np.ndarray:
+    """The lag correlations `ρ_1, ρ_2, …` of standardised residuals `z` `(N,)` or `(N, m)`
+    (0 where not an observation) over the pairs `(i, i + k)` that `pairs(k)` marks (a
+    boolean `(N − k,)`; the m columns pooled), kept from lag 1 while `ρ_k` exceeds
+    `max(0.05, 3/√n)` for `n` observations (for independent noise `ρ_k` scatters by
+    `1/√n`), at most `max_lag`. Empty for fewer than 10 observations or zero variance.
+    The one estimator of [`residual_lag_correlation`][] (the calibration's residuals) and
+    `metrology._gum.lag_correlation` (a fit's residuals along their lines)."""
+    z = np.asarray(z, dtype=np.float64).reshape(len(z), -1)
+    m = z.shape[1]
     if n < 10:
         return np.zeros(0)
-    z = np.where(used, r / np.sqrt(np.where(used, a, 1.0)), 0.0)
-    var = float(np.sum(z * z)) / n
-    if var <= 0:
+    var = float(np.sum(z * z)) / (n * m)
+    if not var > 0:
         return np.zeros(0)
     limit = max(0.05, 3.0 / np.sqrt(n))
     out = []
     for k in range(1, min(max_lag, n - 1) + 1):
-        pair = used[:-k] & used[k:]
+        pair = pairs(k)
         if not pair.any():
             break
-        rho = float(np.sum((z[:-k] * z[k:])[pair])) / pair.sum() / var
+        rho = float(np.sum(np.sum(z[:-k] * z[k:], axis=1)[pair])) / (pair.sum() * m) / var
         if not rho > limit:
             break
         out.append(rho)

@@ -258,24 +258,12 @@ def point_lines(X, frame_index=None, labels=None) -> np.ndarray:
 def lag_correlation(r, lines, max_lag: int = MAX_LAG) -> np.ndarray:
     """Lag correlations `ρ_1, ρ_2, …` of residuals `r` `(N, m)` along `lines` (pairs on
     one line only, the m columns pooled), kept from lag 1 while `ρ_k > max(0.05, 3/√N)`
-    (for independent noise `ρ_k` scatters by `1/√N`); empty when neighbours do not
-    correlate."""
-    r = np.asarray(r, dtype=np.float64).reshape(len(lines), -1)
-    n = len(r)
-    var = float(np.mean(r * r))
-    if n < 10 or not var > 0:
-        return np.zeros(0)
-    limit = max(0.05, 3.0 / math.sqrt(n))
-    out = []
-    for k in range(1, min(max_lag, n - 1) + 1):
-        pair = lines[:-k] == lines[k:]
-        if not pair.any():
-            break
-        rho = float(np.mean(np.sum(r[:-k] * r[k:], axis=1)[pair])) / r.shape[1] / var
-        if not rho > limit:
-            break
-        out.append(rho)
-    return np.asarray(out)
+    (the calibration's estimator, `_calcov.lag_correlations`); empty when neighbours do
+    not correlate."""
+    from ._calcov import lag_correlations
+
+    lines = np.asarray(lines)
+    return lag_correlations(r, lambda k: lines[:-k] == lines[k:], len(lines), max_lag)
 
 
 def banded_sum(P, rho, lines) -> np.ndarray:
