@@ -76,11 +76,13 @@ def test_simulate_keeps_every_board_whole(tmp_path, capsys):
 
 def test_the_default_square_of_the_paper_rig_is_unchanged():
     from scheimflux.cli._main import build_parser
-    from scheimflux.cli._simulate import _build_rig, _default_square
+    from scheimflux.cli._simulate import _build_rig, _default_square, _target_span
+    from scheimflux.targets import Checkerboard
 
     args = build_parser("simulate").parse_args(["simulate", "--out", "x", "--no-refine"])
     rig = _build_rig(args)
-    assert _default_square(rig, 11, 8, 1.5) == 0.3
+    assert _target_span(Checkerboard(11, 8, 0.3)) == (12.0, 9.0)  # squares across the board
+    assert _default_square(rig, 12.0, 9.0, 1.5) == 0.3
 
 
 def test_simulate_another_camera_and_laser(tmp_path, capsys):
@@ -120,6 +122,9 @@ def test_simulate_rig_options_refused_with_a_reason(tmp_path, capsys):
         (["--laser-azimuth-deg", "90"], "needs --laser-angle-deg"),
         (["--bit-depth", "12"], "needs --images"),
         (["--bit-depth", "16", "--images", "--image-ext", "jpg"], "PNG or TIFF"),
+        (["--marker-mm", "0.2"], "is for --target charuco"),
+        (["--target", "charuco", "--circle-diameter-mm", "0.1"], "circles or acircles"),
+        (["--target", "charuco", "--board", "12x9"], "needs 54"),
     ]
     for extra, words in cases:
         assert main(["simulate", "--out", str(tmp_path / "x"), *extra]) == 1, extra
@@ -175,3 +180,48 @@ def test_the_printed_detect_command_reads_the_images(tmp_path, capsys, monkeypat
     assert len(obs.views) == 3 and not obs.dropped
     assert obs.stage is not None and len(obs.stage.frames) == 2
     assert obs.stage.gauge_radius_mm == sim.stage.gauge_radius_mm
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--target", "charuco", "--board", "9x7", "--dictionary", "DICT_5X5_100"],
+        ["--target", "circles", "--board", "7x6", "--circle-diameter-mm", "0.1"],
+        ["--target", "acircles", "--board", "4x9"],
+    ],
+    ids=["charuco", "circles", "acircles"],
+)
+def test_simulate_other_targets_and_their_detect_command(tmp_path, capsys, extra):
+    """`--target` simulates a ChArUco board or a circle grid (its points, the default pitch
+    fitted to its span), and the `detect` command printed for its images names the same
+    target: `detect`'s parser and `make_target` read it back as the simulated board."""
+    from scheimflux.cli._main import build_parser
+    from scheimflux.cli._simulate import _detect_command
+    from scheimflux.targets._target import make_target
+
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out), *extra, "--views", "3", "--frames", "0",
+                 "--no-refine", "--seed", "1"]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    obs = read_observations(out / "observations.json")
+    a = build_parser("detect").parse_args(["detect", "x", "--board", "1x1", "--square-mm", "1",
+                                           "--out", "o", *extra])  # fmt: skip
+    kw = dict(marker_mm=a.marker_mm, dictionary=a.dictionary, diameter_mm=a.circle_diameter_mm)
+    unit = make_target(a.target, a.board, 1.0, **kw)
+    n = len(unit.points_mm)
+    _, mask = obs.corners()
+    assert mask.shape == (3, n) and f"of {3 * n} corners seen" in text
+    k = int(np.argmax(np.abs(np.asarray(unit.points_mm)[:, 0])))
+    pitch = obs.board_points_mm[k][0] / unit.points_mm[k][0]
+    assert f"{pitch:.3f} mm" in text or f"{pitch:g} mm" in text  # the fitted default pitch
+    board = make_target(a.target, a.board, pitch, **kw)
+    np.testing.assert_allclose(obs.board_points_mm, board.points_mm, rtol=1e-12, atol=1e-12)
+
+    words = shlex.split(_detect_command(obs, board, "img"))
+    back = build_parser("detect").parse_args(words[1:])
+    assert back.target == a.target and back.board == a.board
+    kw = dict(marker_mm=back.marker_mm, dictionary=back.dictionary,
+              diameter_mm=back.circle_diameter_mm)  # fmt: skip
+    again = make_target(back.target, back.board, back.square_mm, **kw)
+    assert type(again) is type(board) and str(again) == str(board)
+    np.testing.assert_allclose(again.points_mm, board.points_mm, rtol=1e-9)

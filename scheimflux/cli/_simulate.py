@@ -1,7 +1,8 @@
 """`scheimflux simulate`: a calibration data set ray-traced through a real lens.
 
 Writes, into the folder given by --out,
-  observations.json   corners and laser lines on a posed checkerboard, and a ring-gauge
+  observations.json   target points and laser lines on a posed checkerboard (--target:
+                      a ChArUco board or a circle grid), and a ring-gauge
                       scan on a rotary table (scheimflux.observations/1: the input of
                       `scheimflux calibrate`);
   truth.json          the exact poses, laser plane, stage, pixels and 3-D points
@@ -13,7 +14,9 @@ With --images, also rendered images for `scheimflux detect`:
                               (--image-layout single: images/view_<k>.png, board and
                               laser line in one image);
   images/scan/frame_<i>.png                              the gauge scan's frames.
---image-ext jpg|tif|bmp and --colour (BGR, red laser) change the files' type.
+--image-ext jpg|tif|bmp, --bit-depth 12|16 and --colour (BGR, red laser) change the files'
+type. --sensor, --pixel-pitch-um, --laser-angle-deg and --laser-azimuth-deg set the camera
+and the laser plane.
 Every board lies whole inside the sensor, as a photographer keeps a checkerboard in the
 frame (a board cut by the border is slid across the laser plane until it fits).
 Pixels come from Snell's-law ray tracing onto the tilted sensor, never from a camera
@@ -78,13 +81,36 @@ def register(subparsers) -> None:
         "(0 = the sensor's +u, 90 = +v; default: %(default)s); with --laser-angle-deg",
     )
     p.add_argument("--views", type=int, default=15, help="checkerboard poses (default: 15)")
-    p.add_argument("--board", default="11x8", help="inner corners COLSxROWS (default: %(default)s)")
+    p.add_argument(
+        "--target",
+        choices=("checkerboard", "charuco", "circles", "acircles"),
+        default="checkerboard",
+        help="calibration target, as `detect --target` (default: %(default)s)",
+    )
+    p.add_argument(
+        "--board",
+        default="11x8",
+        help="COLSxROWS: checkerboard inner corners, ChArUco squares, or circles per row x "
+        "rows (default: %(default)s)",
+    )
     p.add_argument(
         "--square-mm",
+        "--spacing-mm",
+        dest="square_mm",
         type=float,
         default=None,
-        help="square size in mm (default: 0.3 mm at |beta| = 1.5, scaled with 1/|beta|, "
-        "smaller where the board would span more than 80%% of the field's narrowest side)",
+        help="square side (circle spacing for circle grids) in mm (default: 0.3 mm at "
+        "|beta| = 1.5, scaled with 1/|beta|, smaller where the board would span more than "
+        "80%% of the field's narrowest side)",
+    )
+    p.add_argument("--marker-mm", type=float, help="ChArUco marker side (default: 0.7 x square)")
+    p.add_argument(
+        "--dictionary",
+        default="DICT_4X4_50",
+        help="ChArUco: OpenCV predefined ArUco dictionary (default: %(default)s)",
+    )
+    p.add_argument(
+        "--circle-diameter-mm", type=float, help="circle diameter (default: half the spacing)"
     )
     p.add_argument(
         "--corner-noise-px", type=float, default=0.03, help="corner noise sigma (default: 0.03)"
@@ -153,7 +179,11 @@ def _check(args) -> None:
     if args.frames < 0:
         raise CLIError(f"--frames must be >= 0, got {args.frames}")
     require_positive(args, "corner_noise_px", "stripe_noise_px", zero_ok=True)
-    require_positive(args, "gauge_radius_mm", "square_mm")
+    require_positive(args, "gauge_radius_mm", "square_mm", "marker_mm", "circle_diameter_mm")
+    if args.marker_mm is not None and args.target != "charuco":
+        raise CLIError("--marker-mm is for --target charuco")
+    if args.circle_diameter_mm is not None and args.target not in ("circles", "acircles"):
+        raise CLIError("--circle-diameter-mm is for --target circles or acircles")
     _sensor_size(args)
     _pixel_pitch_mm(args)
     if args.laser_angle_deg is not None and not 0.0 < args.laser_angle_deg <= 90.0:
@@ -214,12 +244,38 @@ def _build_rig(args):
     )
 
 
-def _default_square(rig, cols: int, rows: int, magnification: float) -> float:
-    """The default square (mm): 0.3 mm at |β| = 1.5 scaled with 1/|β|, smaller where the
-    board would span more than 80 % of the laser-plane field's narrowest side (a short
-    lens images the inclined plane as a strong trapezoid: the Tessar's field at ×2 is 2.3
-    mm on one side and 3.2 mm on the other), so that every pose can keep it whole inside
-    the sensor; rounded down to 1 µm."""
+def _target(args, pitch_mm: float):
+    """The target of `--target`, `--board` and its options, with pitch `pitch_mm`."""
+    from ..targets._target import make_target
+
+    try:
+        return make_target(
+            args.target, args.board, pitch_mm, marker_mm=args.marker_mm,
+            dictionary=args.dictionary, diameter_mm=args.circle_diameter_mm,
+        )  # fmt: skip
+    except ValueError as err:
+        raise CLIError(f"--target {args.target}: {err}") from None
+
+
+def _target_span(target) -> tuple[float, float]:
+    """The target's extent along its x and y in units of its pitch: its points' span
+    plus one pitch on each side (a checkerboard's outer squares, a ChArUco board's border
+    squares, a circle grid's outer circles and margin)."""
+    import numpy as np
+
+    pts = np.asarray(target.points_mm, dtype=float)
+    pitch = float(getattr(target, "square_mm", getattr(target, "spacing_mm", 1.0)))
+    span = (pts.max(axis=0) - pts.min(axis=0))[:2] / pitch
+    return float(span[0]) + 2.0, float(span[1]) + 2.0
+
+
+def _default_square(rig, cols: float, rows: float, magnification: float) -> float:
+    """The default pitch (mm) of a target `cols` × `rows` pitches wide ([`_target_span`]):
+    0.3 mm at |β| = 1.5 scaled with 1/|β|, smaller where the board would span more than
+    80 % of the laser-plane field's narrowest side (a short lens images the inclined plane
+    as a strong trapezoid: the Tessar's field at ×2 is 2.3 mm on one side and 3.2 mm on
+    the other), so that every pose can keep it whole inside the sensor; rounded down to
+    1 µm. A checkerboard of C × R inner corners spans (C + 1) × (R + 1) squares."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -227,7 +283,7 @@ def _default_square(rig, cols: int, rows: int, magnification: float) -> float:
     sensor = [[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]
     c = np.asarray(rig.laser_points(jnp.asarray(sensor, dtype=float)))
     side = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)  # top, right, bottom, left
-    fit = 0.8 * min(min(side[0], side[2]) / (cols + 1), min(side[1], side[3]) / (rows + 1))
+    fit = 0.8 * min(min(side[0], side[2]) / cols, min(side[1], side[3]) / rows)
     return min(round(0.3 * 1.5 / magnification, 3), math.floor(fit * 1000) / 1000)
 
 
@@ -262,7 +318,6 @@ def run(args) -> int:
     from ..io._observations import write_observations
     from ..io._stripes import write_stripes
     from ..simulate._observe import simulate_observations, write_truth
-    from ..targets._board import Checkerboard
 
     out = os.fspath(args.out)
     if os.path.exists(out) and not os.path.isdir(out):
@@ -275,13 +330,13 @@ def run(args) -> int:
         if any(n.startswith("view_") for n in os.listdir(images)):  # an earlier --images run
             outputs.append(images)
     refuse_to_clobber(*outputs, overwrite=args.overwrite)
-    board = Checkerboard.parse(args.board, 1.0 if args.square_mm is None else args.square_mm)
+    board = _target(args, 1.0 if args.square_mm is None else args.square_mm)
     check_output_folder(out)  # before the ray tracing, not after it
 
     rig = _build_rig(args)
     if args.square_mm is None:
-        square = _default_square(rig, board.cols, board.rows, args.magnification)
-        board = Checkerboard(board.cols, board.rows, square)
+        square = _default_square(rig, *_target_span(board), args.magnification)
+        board = _target(args, square)
     obs, truth = simulate_observations(
         rig,
         board,
@@ -352,11 +407,16 @@ def run(args) -> int:
     )
     cut = [k for k in range(len(obs.views)) if not mask[k].all()]
     if cut:
+        kind = "checkerboard" if args.target == "checkerboard" else "circle-grid"
+        whole = (
+            "a ChArUco detector uses the corners it sees, but fewer"
+            if args.target == "charuco"
+            else f"a {kind} detector finds only whole boards"
+        )
         print(
             f"note: the sensor's border cuts the board in {len(cut)} view(s) "
             f"({', '.join(map(str, cut))}): it is larger than the field at those poses, and "
-            "a checkerboard detector finds only whole boards; a smaller --square-mm keeps "
-            "every board whole"
+            f"{whole}; a smaller --square-mm keeps every board whole"
         )
     if obs.stage is not None:
         print(
@@ -365,10 +425,8 @@ def run(args) -> int:
         )
     print(f"wrote {', '.join(paths)}")
     if with_images:
-        print(
-            f"rendered {len(written)} images into {images} (scan frames in "
-            f"{os.path.join(images, 'scan')}) in {dt:.1f} s"
-        )
+        scan = f" (scan frames in {os.path.join(images, 'scan')})" if frames else ""
+        print(f"rendered {len(written)} images into {images}{scan} in {dt:.1f} s")
         print(f"next, as from photos: {_detect_command(obs, board, images)}")
     return 0
 
@@ -380,8 +438,21 @@ def _detect_command(obs, board, images: str) -> str:
     degrees), not the traced truth."""
     import shlex
 
-    words = ["scheimflux", "detect", images, "--board", f"{board.cols}x{board.rows}",
-             "--square-mm", f"{board.square_mm:g}"]  # fmt: skip
+    from ..targets import CharucoBoard, CircleGrid
+
+    words = ["scheimflux", "detect", images]
+    if isinstance(board, CharucoBoard):
+        words += ["--target", "charuco", "--board", f"{board.squares_x}x{board.squares_y}",
+                  "--square-mm", f"{board.square_mm:g}",
+                  "--marker-mm", f"{board.marker_mm:g}"]  # fmt: skip
+        if board.dictionary != "DICT_4X4_50":
+            words += ["--dictionary", board.dictionary]
+    elif isinstance(board, CircleGrid):
+        words += ["--target", "acircles" if board.asymmetric else "circles", "--board",
+                  f"{board.cols}x{board.rows}", "--spacing-mm", f"{board.spacing_mm:g}",
+                  "--circle-diameter-mm", f"{board.diameter_mm:g}"]  # fmt: skip
+    else:
+        words += ["--board", f"{board.cols}x{board.rows}", "--square-mm", f"{board.square_mm:g}"]
     if obs.pixel_pitch_mm is not None:
         words += ["--pixel-pitch-mm", *(f"{p:g}" for p in obs.pixel_pitch_mm)]
     nom = obs.nominal
