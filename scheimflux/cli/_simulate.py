@@ -264,7 +264,7 @@ def _target_span(target) -> tuple[float, float]:
     import numpy as np
 
     pts = np.asarray(target.points_mm, dtype=float)
-    pitch = float(getattr(target, "square_mm", getattr(target, "spacing_mm", 1.0)))
+    pitch = float(target.spacing_mm if hasattr(target, "spacing_mm") else target.square_mm)
     span = (pts.max(axis=0) - pts.min(axis=0))[:2] / pitch
     return float(span[0]) + 2.0, float(span[1]) + 2.0
 

@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._calcov import MAX_LAG, lag_correlations
 from ._lsq import fit_shape, parameter_jacobian, residual_normals
 from ._shapes import AbstractShape
 
@@ -234,7 +235,6 @@ def _checked_fit(shape, X, labels):
     return fit, np.asarray(gX), np.asarray(normals)
 
 
-MAX_LAG = 32  # as the calibration's (`_calcov.MAX_LAG`)
 STEP_BREAK = 4.0  # a step longer than this × the median step ends a line
 
 
@@ -260,8 +260,6 @@ def lag_correlation(r, lines, max_lag: int = MAX_LAG) -> np.ndarray:
     one line only, the m columns pooled), kept from lag 1 while `ρ_k > max(0.05, 3/√N)`
     (the calibration's estimator, `_calcov.lag_correlations`); empty when neighbours do
     not correlate."""
-    from ._calcov import lag_correlations
-
     lines = np.asarray(lines)
     return lag_correlations(r, lambda k: lines[:-k] == lines[k:], len(lines), max_lag)
 
