@@ -163,6 +163,8 @@ def test_rendered_captures(cam, tmp_path, target, layout, ext, colour, tol):
     preview = cv2.imread(str(tmp_path / "preview" / "view_0_preview.png"))
     assert preview.shape == (600, 800, 3)
     assert obs.pixel_pitch_mm is None
+    # a circle grid's points are blob centroids: the file states the circles' diameter
+    assert obs.circle_diameter_mm == getattr(target, "diameter_mm", None)
 
 
 # The line at peak 0.3 of full scale: over the black print (albedo 0.08; 248 of the 520
@@ -837,6 +839,8 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
             "--pixel-pitch-mm", "0.0044", "0.0044"]  # fmt: skip
     assert run(argv) == 0
     obs = read_observations(obs_path)
+    # a circle grid's points are blob centroids: the file states the dots' diameter
+    assert obs.circle_diameter_mm == getattr(target, "diameter_mm", None)
     kept = [int(v.source[0].split("_")[1].split(".")[0]) for v in obs.views]
     seen = np.isfinite(truth.corners_px).all(axis=2)
     if isinstance(target, CircleGrid):  # a dot is seen when all of it is in the image

@@ -57,6 +57,9 @@ class CalibrationData(eqx.Module):
     sigma_stripe_mm: Float[Array, ""]
     robust: float | None = eqx.field(static=True, default=None)
     table: TableTargetData | None = None  # a target fixed to the rotary table
+    # circle targets: the outline's vertices about each board point (board frame, mm);
+    # None: the points are imaged as points
+    circle_ring: Float[Array, "K 3"] | None = None
 
 
 def padded_length(n: int, minimum: int = 8) -> int:
@@ -124,7 +127,58 @@ def make_data(
         sigma_stripe_mm=put(sigma_stripe_mm),
         robust=robust,
         table=None if obs.stage_target is None else table_target_data(obs.stage_target, centre),
+        circle_ring=None
+        if obs.circle_diameter_mm is None
+        else put(circle_ring(obs.circle_diameter_mm)),
     )
+
+
+CIRCLE_VERTICES = 16
+
+
+def circle_ring(diameter_mm: float, n: int = CIRCLE_VERTICES) -> np.ndarray:
+    """`(n, 3)` offsets (mm) of `n` points equally spaced on a circle of `diameter_mm` in
+    the board's plane (z = 0), the first on +x."""
+    a = 2.0 * np.pi * np.arange(n) / n
+    r = 0.5 * float(diameter_mm)
+    return np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], axis=1)
+
+
+def _polygon_centroid(p: Float[Array, "*b K 2"]) -> Float[Array, "*b 2"]:
+    """Area centroid of the closed polygons `p` (vertices in order, either sense); the
+    vertices' mean where a polygon has no area (a disc seen edge-on)."""
+    mean = jnp.mean(p, axis=-2)
+    q = p - mean[..., None, :]  # about the mean: no cancellation of large pixel values
+    q1 = jnp.roll(q, -1, axis=-2)
+    c = q[..., 0] * q1[..., 1] - q1[..., 0] * q[..., 1]  # twice each triangle's area
+    a = jnp.sum(c, axis=-1)
+    scale = jnp.sum(q * q, axis=(-2, -1))
+    ok = jnp.abs(a) > 1e-9 * scale
+    m = jnp.sum((q + q1) * c[..., None], axis=-2) / (3.0 * jnp.where(ok, a, 1.0))[..., None]
+    return mean + jnp.where(ok[..., None], m, 0.0)
+
+
+def board_images_px(camera, pose: Pose, board, ring=None) -> Float[Array, "M 2"]:
+    """Where a detector sees each board point of one view, `(M, 2)` px.
+
+    `ring` None: the point's image. `ring` `(K, 3)` (`CalibrationData.circle_ring`; K
+    even): the point is the centre of a circle, and a blob detector measures the centroid
+    of the circle's image, which under perspective and distortion is not the image of its
+    centre (by up to ~0.1 px for sub-millimetre dots under a short lens). The circle's
+    outline is projected at the K vertices and the area centroid of that polygon and of
+    the polygon of every other vertex are combined by Richardson extrapolation,
+    `(4 c_K - c_K/2) / 3`: the inscribed polygon's error falls as K⁻², the combination's
+    as K⁻⁴ (K = 16 on a 0.15 mm dot under an 8 mm lens: 2.7e-3 px alone, 1.3e-4 px
+    combined, against 512 vertices).
+    """
+    if ring is None:
+        uv, _ = jax.vmap(camera.project_one)(pose.apply(board))
+        return uv
+    m, k = board.shape[0], ring.shape[0]
+    X = pose.apply((board[:, None, :] + ring[None, :, :]).reshape(m * k, 3))
+    uv, _ = jax.vmap(camera.project_one)(X)
+    uv = uv.reshape(m, k, 2)
+    return (4.0 * _polygon_centroid(uv) - _polygon_centroid(uv[:, ::2])) / 3.0
 
 
 def _robustify(r, k):
@@ -140,8 +194,7 @@ def corner_errors_px(params: SystemParams, data: CalibrationData) -> Float[Array
     """Reprojection errors (px) of every corner; 0 where the corner was not detected."""
 
     def one_view(pose, uv_obs, w):
-        X = pose.apply(data.board)
-        uv, _ = jax.vmap(params.camera.project_one)(X)
+        uv = board_images_px(params.camera, pose, data.board, data.circle_ring)
         return (uv - uv_obs) * w[:, None]
 
     return jax.vmap(one_view)(params.board_poses, data.corners, data.corner_w)

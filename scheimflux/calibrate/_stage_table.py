@@ -176,7 +176,7 @@ def _target_observations(obs: Observations) -> Observations:
     views = [View(c, np.zeros((0, 2))) for c in np.asarray(t.corners_px)]
     return dataclasses.replace(
         obs, board_points_mm=np.asarray(t.board_points_mm), views=views, stage=None,
-        stage_target=None, dropped=[],
+        stage_target=None, dropped=[], circle_diameter_mm=None,
     )  # fmt: skip
 
 

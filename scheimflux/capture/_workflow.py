@@ -261,6 +261,8 @@ def detect_captures(
         views=views,
         nominal=nominal,
         dropped=list(report.dropped),
+        # a circle grid's points are the blobs' centroids (calibration models them)
+        circle_diameter_mm=getattr(target, "diameter_mm", None),
     )
     return obs, report
 

@@ -290,7 +290,12 @@ def run(args) -> int:
             if obs.stage_target is not None
             else ""
         )
-        + f"; model {args.model}, distortion {distortion}",
+        + f"; model {args.model}, distortion {distortion}"
+        + (
+            f"; circle centroids modelled (diameter {obs.circle_diameter_mm:g} mm)"
+            if obs.circle_diameter_mm is not None
+            else ""
+        ),
         flush=True,
     )
     t0 = time.perf_counter()

@@ -284,6 +284,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"dropped {len(dropped)} table step(s): {_by_reason(dropped, 'step')}")
     if report.previews:
         print(f"{len(report.previews)} preview(s) in {args.preview}")
+    if obs.circle_diameter_mm is not None and args.circle_diameter_mm is None:
+        print(
+            f"note: circle diameter not given; {obs.circle_diameter_mm:g} mm (half the "
+            "spacing) assumed: calibration models each point as the centroid of its "
+            "circle's image, so state the printed diameter with --circle-diameter-mm"
+        )
     return 0
 
 

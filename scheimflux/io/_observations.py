@@ -5,6 +5,7 @@
  "sensor": {"width": 1600, "height": 1200, "pixel_pitch_mm": [0.0044, 0.0044]},
  "nominal": {"focal_length_mm": 97, "magnification": 1.5, "tilt_deg": [0, 13]},  # optional
  "board_points_mm": [[x, y, z], ...],
+ "circle_diameter_mm": 0.15,                                                     # optional
  "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...],
             "source": ["view_0_board.png", "view_0_stripe.png"],              # optional
             "board_motion_px": 0.012}, ...],                                   # optional
@@ -21,6 +22,11 @@
                                      "reason": "..."}]}}
 ```
 `corners_px` follows the order of `board_points_mm`; null marks a corner not detected.
+`circle_diameter_mm` says that the board's points are the centres of circles of that
+diameter (a circle grid) and that `corners_px` are the centroids of their images, as a
+blob detector measures them; calibration then predicts the centroid of each circle's
+image instead of the image of its centre (they differ under perspective and
+distortion). Absent: the points are imaged as points (checkerboard, ChArUco corners).
 `sensor.pixel_pitch_mm` is optional (null or absent when the datasheet value was not
 given to `detect`; the thick-lens model needs it). `source` names the image files a view
 was measured in; `dropped_views` lists the captures left out (target not found, image
@@ -51,8 +57,8 @@ FORMAT = "scheimflux.observations/1"
 # The keys each level of the file may hold; anything else is refused (a misspelt optional
 # key would otherwise be ignored silently and change the result). "comment" is free text.
 TOP_KEYS = (
-    "format", "sensor", "nominal", "board_points_mm", "views", "dropped_views", "stage",
-    "stage_target", "comment",
+    "format", "sensor", "nominal", "board_points_mm", "circle_diameter_mm", "views",
+    "dropped_views", "stage", "stage_target", "comment",
 )  # fmt: skip
 SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
 NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
@@ -145,6 +151,9 @@ class Observations:
     stage: StageScan | None = None
     dropped: list[DroppedView] = dataclasses.field(default_factory=list)
     stage_target: StageTargetViews | None = None
+    # the board's points are centres of circles of this diameter (mm) and `corners_px`
+    # the centroids of their images; None: points imaged as points
+    circle_diameter_mm: float | None = None
 
     def corners(self) -> tuple[np.ndarray, np.ndarray]:
         """All views' corners stacked, `(V, M, 2)`, and the detection mask `(V, M)`."""
@@ -265,6 +274,13 @@ def parse_observations(doc) -> Observations:
     board = _points(_require(doc, "board_points_mm", ""), "board_points_mm", 3)
     if len(board) < 4:
         raise ObservationsError(f"board_points_mm has {len(board)} points; at least 4 needed")
+    diameter = doc.get("circle_diameter_mm")
+    if diameter is not None:
+        diameter = _number(diameter, "circle_diameter_mm", positive=True)
+        if not np.all(board[:, 2] == board[0, 2]):
+            raise ObservationsError(
+                "circle_diameter_mm needs a flat board (board_points_mm with one z)"
+            )
     views_doc = _require(doc, "views", "")
     if not isinstance(views_doc, list):
         raise ObservationsError("views must be a list")
@@ -322,7 +338,7 @@ def parse_observations(doc) -> Observations:
             "one step"
         )
     return Observations(
-        int(width), int(height), pitch, board, views, nominal, stage, dropped, target
+        int(width), int(height), pitch, board, views, nominal, stage, dropped, target, diameter
     )
 
 
@@ -445,6 +461,8 @@ def observations_to_dict(obs: Observations) -> dict:
             if v is not None
         }
     doc["board_points_mm"] = _rows(np.asarray(obs.board_points_mm))
+    if obs.circle_diameter_mm is not None:
+        doc["circle_diameter_mm"] = float(obs.circle_diameter_mm)
     doc["views"] = [
         {
             "corners_px": _rows(np.asarray(v.corners_px)),

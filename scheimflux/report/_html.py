@@ -183,10 +183,12 @@ def _corner_errors(cal):
     """Reprojection errors per view `(V, M, 2)` px, the detected mask and the pixels."""
     import jax
 
+    from ..calibrate._model import board_images_px
+
     data, params = cal.data, cal.params
 
     def one_view(pose, uv_obs):
-        uv, _ = jax.vmap(params.camera.project_one)(pose.apply(data.board))
+        uv = board_images_px(params.camera, pose, data.board, data.circle_ring)
         return uv - uv_obs
 
     err = np.asarray(jax.jit(jax.vmap(one_view))(params.board_poses, data.corners))

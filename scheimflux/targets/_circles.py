@@ -18,10 +18,11 @@ that remain, the one whose circle 0 is nearest the image's top-left corner. This
 changes only each view's board pose, never the camera calibrated from it; the message
 says when the choice was needed.
 
-Circle centres are the blob detector's centroids: under perspective the centre of a
-circle's image is not the image of its centre. The shift grows with the square of the
-circle's size over its distance; keep the circles small (diameter about a third of the
-spacing or less) for sub-0.05 px centres.
+Circle centres are the blob detector's centroids: under perspective and distortion the
+centre of a circle's image is not the image of its centre (the shift grows with the
+square of the circle's size over its distance). The observations state the circles'
+diameter (`circle_diameter_mm`) and calibration predicts the centroid of each circle's
+image (`calibrate._model.board_images_px`), so the shift is modelled, not an error.
 """
 
 from __future__ import annotations
