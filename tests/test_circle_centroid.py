@@ -157,6 +157,22 @@ def test_simulated_circle_grid_is_what_opencv_measures_in_the_rendered_image(tes
     np.testing.assert_allclose(obs.views[k].corners_px, truth.corners_px[k], atol=1e-9)
 
 
+def test_calibration_data_of_a_circle_grid_predicts_centroids(tessar_scene):
+    # the residual arrays built from circle-grid observations carry the outline, and the
+    # corner errors are the modelled centroids minus the observed points
+    from scheimflux.calibrate._model import SystemParams, corner_errors_px, make_data
+
+    _, grid, obs, truth = tessar_scene
+    data = make_data(obs)
+    np.testing.assert_allclose(np.asarray(data.circle_ring), circle_ring(grid.diameter_mm))
+    cam = sf.ThickLensScheimpflug(**truth.nominal_params)
+    poses = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *truth.board_poses)
+    err = np.asarray(jax.jit(corner_errors_px)(SystemParams(cam, poses), data))
+    for k, pose in enumerate(truth.board_poses):
+        want = np.asarray(board_images_px(cam, pose, data.board, data.circle_ring))
+        np.testing.assert_allclose(err[k], want - obs.views[k].corners_px, atol=1e-9)
+
+
 def test_observations_file_states_the_circle_diameter(tessar_scene):
     _, grid, obs, _ = tessar_scene
     doc = json.loads(json.dumps(observations_to_dict(obs)))
@@ -209,3 +225,59 @@ def test_modelled_centroids_calibrate_closer_to_the_ray_traced_truth():
     modelled = distance_rms_um(obs)
     as_points = distance_rms_um(dataclasses.replace(obs, circle_diameter_mm=None))
     assert modelled < 0.75 * as_points, (modelled, as_points)
+
+
+def test_a_circle_grid_on_the_table_is_modelled_like_the_boards():
+    # The table target's corners (pose composed from the stage and the table pose) go
+    # through the same centroid model as the boards': equal to `board_images_px` at the
+    # composed pose of each table step; and the file keeps the table target's diameter.
+    import types
+
+    from scheimflux.calibrate._model import SystemParams
+    from scheimflux.calibrate._stage_table import (
+        table_points_c,
+        table_target_data,
+        table_target_errors_px,
+    )
+    from scheimflux.io._observations import StageTargetViews
+
+    cam = _short_camera()
+    front = _focus_pose(cam, GRID, rot_deg=10.0, tilt_deg=(20.0, 5.0))
+    stage = sf.RotaryStage(
+        pose=sf.Pose(jnp.array([0.3, -0.2, 0.1]), jnp.array([0.4, -0.3, 2.0])),
+        delta_omega=jnp.asarray(math.radians(3.0)),
+    )
+    steps = np.array([0, 1, 3])
+    # the table pose that puts the grid at `front` at step 0: T_t_b = T_m_c ∘ front
+    Rm, tm = np.asarray(stage.R_m_c), np.asarray(stage.t_m_c)
+    Rf, tf = np.asarray(front.R), np.asarray(front.translation)
+    table_pose = sf.Pose.from_matrix(Rm @ Rf, Rm @ tf + tm)
+    obs_px = np.zeros((len(steps), GRID.num_corners, 2))
+    views = StageTargetViews(3.0, GRID.points_mm, steps, obs_px, circle_diameter_mm=0.18)
+    td = table_target_data(views, (800.0, 600.0))
+    params = SystemParams(cam, front, stage=stage, table_pose=table_pose)
+    got = np.asarray(table_target_errors_px(params, types.SimpleNamespace(table=td)))
+    board = jnp.asarray(GRID.points_mm)
+    ring = jnp.asarray(circle_ring(0.18))
+    for i, step in enumerate(steps):
+        # the composed pose of this step, from where it puts the origin and the axes
+        P = np.asarray(table_points_c(stage, table_pose, jnp.eye(4)[:, :3], float(step)))
+        pose = sf.Pose.from_matrix((P[:3] - P[3]).T, P[3])
+        want = np.asarray(board_images_px(cam, pose, board, ring))
+        np.testing.assert_allclose(got[i], want, rtol=0, atol=1e-7)
+    # step 0 is `front` itself (the table pose was built for it)
+    np.testing.assert_allclose(got[0], board_images_px(cam, front, board, ring), atol=1e-7)
+
+    doc = {
+        "format": "scheimflux.observations/1",
+        "sensor": {"width": 1600, "height": 1200},
+        "board_points_mm": GRID.points_mm.tolist(),
+        "views": [],
+        "stage_target": {
+            "delta_omega_deg": 3.0, "board_points_mm": GRID.points_mm.tolist(),
+            "circle_diameter_mm": 0.18,
+            "views": [{"table_step": int(k), "corners_px": obs_px[0].tolist()} for k in steps],
+        },
+    }  # fmt: skip
+    back = parse_observations(json.loads(json.dumps(observations_to_dict(parse_observations(doc)))))
+    assert back.stage_target.circle_diameter_mm == 0.18 and back.circle_diameter_mm is None

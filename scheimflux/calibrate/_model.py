@@ -59,7 +59,7 @@ class CalibrationData(eqx.Module):
     table: TableTargetData | None = None  # a target fixed to the rotary table
     # circle targets: the outline's vertices about each board point (board frame, mm);
     # None: the points are imaged as points
-    circle_ring: Float[Array, "K 3"] | None = None
+    circle_ring: Float[Array, "R 3"] | None = None
 
 
 def padded_length(n: int, minimum: int = 8) -> int:
@@ -174,10 +174,20 @@ def board_images_px(camera, pose: Pose, board, ring=None) -> Float[Array, "M 2"]
     if ring is None:
         uv, _ = jax.vmap(camera.project_one)(pose.apply(board))
         return uv
-    m, k = board.shape[0], ring.shape[0]
-    X = pose.apply((board[:, None, :] + ring[None, :, :]).reshape(m * k, 3))
-    uv, _ = jax.vmap(camera.project_one)(X)
-    uv = uv.reshape(m, k, 2)
+    uv, _ = jax.vmap(camera.project_one)(pose.apply(circle_outlines(board, ring)))
+    return outline_centroids(uv, ring.shape[0])
+
+
+def circle_outlines(board, ring) -> Float[Array, "MK 3"]:
+    """The outline vertices of every board point's circle, `(M K, 3)`, point by point."""
+    return (board[:, None, :] + ring[None, :, :]).reshape(-1, 3)
+
+
+def outline_centroids(uv: Float[Array, "MK 2"], k: int) -> Float[Array, "M 2"]:
+    """The centroids of the circles' images from their projected outlines `uv` (`k`
+    vertices per circle, as [`circle_outlines`][]): Richardson's combination of the
+    `k`-gon and the `k/2`-gon (see [`board_images_px`][])."""
+    uv = uv.reshape(-1, k, 2)
     return (4.0 * _polygon_centroid(uv) - _polygon_centroid(uv[:, ::2])) / 3.0
 
 

@@ -62,11 +62,12 @@ class TableTargetData(eqx.Module):
     steps: Float[Array, " F"]
     stripe: Float[Array, "F K 2"]
     stripe_w: Float[Array, "F K"]
+    circle_ring: Float[Array, "R 3"] | None = None  # a circle grid (`CalibrationData`'s)
 
 
 def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
     """[`TableTargetData`][] of an observations file's `stage_target`."""
-    from ._model import _pad
+    from ._model import _pad, circle_ring
 
     uv = np.asarray(target.corners_px, dtype=np.float64)
     ok = np.all(np.isfinite(uv), axis=-1)
@@ -84,6 +85,9 @@ def table_target_data(target: StageTargetViews, centre) -> TableTargetData:
         steps=put(target.table_steps),
         stripe=put(stripe),
         stripe_w=put(stripe_w),
+        circle_ring=None
+        if target.circle_diameter_mm is None
+        else put(circle_ring(target.circle_diameter_mm)),
     )
 
 
@@ -97,11 +101,19 @@ def table_points_c(stage: RotaryStage, table_pose: Pose, board, step):
 
 def table_target_errors_px(params, data) -> Float[Array, "F M 2"]:
     """Reprojection errors (px) of the table target's corners; 0 where not detected."""
+    from ._model import circle_outlines, outline_centroids
+
     t = data.table
 
     def one(step, uv_obs, w):
-        X = table_points_c(params.stage, params.table_pose, t.board, step)
-        uv, _ = jax.vmap(params.camera.project_one)(X)
+        if t.circle_ring is None:
+            X = table_points_c(params.stage, params.table_pose, t.board, step)
+            uv, _ = jax.vmap(params.camera.project_one)(X)
+        else:  # a circle grid: the centroids of the circles' images
+            outline = circle_outlines(t.board, t.circle_ring)
+            X = table_points_c(params.stage, params.table_pose, outline, step)
+            uv, _ = jax.vmap(params.camera.project_one)(X)
+            uv = outline_centroids(uv, t.circle_ring.shape[0])
         return (uv - uv_obs) * w[:, None]
 
     return jax.vmap(one)(t.steps, t.corners, t.w)
@@ -176,7 +188,7 @@ def _target_observations(obs: Observations) -> Observations:
     views = [View(c, np.zeros((0, 2))) for c in np.asarray(t.corners_px)]
     return dataclasses.replace(
         obs, board_points_mm=np.asarray(t.board_points_mm), views=views, stage=None,
-        stage_target=None, dropped=[], circle_diameter_mm=None,
+        stage_target=None, dropped=[], circle_diameter_mm=t.circle_diameter_mm,
     )  # fmt: skip
 
 
@@ -289,18 +301,22 @@ def _table_block_moved(q, params, data):
     target at step i is moved by a small rotation `(q_i0, q_i1, 0)` and a translation
     `(q_i2, q_i3, 0)` in table coordinates, `X_t → X_t + ω × X_t + ε` (the wobble and
     runout of the simulator, `simulate._stage_target`); `q` `(F, 4)`."""
-    from ._model import laser_points
+    from ._model import circle_outlines, laser_points, outline_centroids
 
     t, st, T = data.table, params.stage, params.table_pose
     z = jnp.zeros(q.shape[:1])
     om = jnp.stack([q[:, 0], q[:, 1], z], axis=1)
     eps = jnp.stack([q[:, 2], q[:, 3], z], axis=1)
+    ring = t.circle_ring
+    board = t.board if ring is None else circle_outlines(t.board, ring)
 
     def corners(step, uv_obs, w, om, eps):
-        X_t = T.apply(t.board)
+        X_t = T.apply(board)
         X_t = X_t + jnp.cross(om, X_t) + eps
         X = (X_t @ st.frame_rotation(step) - st.t_m_c) @ st.R_m_c
         uv, _ = jax.vmap(params.camera.project_one)(X)
+        if ring is not None:  # a circle grid: the centroids of the circles' images
+            uv = outline_centroids(uv, ring.shape[0])
         return (uv - uv_obs) * w[:, None]
 
     (X,) = laser_points(params.camera, params.plane, t.stripe)

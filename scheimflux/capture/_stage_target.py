@@ -170,5 +170,5 @@ def detect_stage_target(
         )
     return StageTargetViews(
         dw, np.asarray(target.points_mm), np.asarray(steps), np.stack(corners),
-        tuple(sources), dropped, tuple(stripes),
+        tuple(sources), dropped, tuple(stripes), getattr(target, "diameter_mm", None),
     )  # fmt: skip

@@ -15,6 +15,7 @@
            "frames": [[[u, v], ...], ...]},
  "stage_target": {"delta_omega_deg": 30,                                          # optional
                   "board_points_mm": [[x, y, z], ...],
+                  "circle_diameter_mm": 0.15,                                   # optional
                   "views": [{"table_step": 0, "corners_px": [[u, v] or null, ...],
                              "stripe_px": [[u, v], ...],                        # optional
                              "source": ["step_000.png"]}, ...],
@@ -37,7 +38,8 @@ measured, the laser-on image showing the board too faintly; absent: no laser-off
 or not measured). `stage_target` holds a target fixed to the rotary table, imaged at table steps
 `table_step` (angle `table_step · delta_omega_deg`; steps strictly increasing, a step
 whose image showed no target is listed in its `dropped_views` and keeps its number); its
-`board_points_mm` may be another target than the calibration boards'. Files without
+`board_points_mm` may be another target than the calibration boards' (its own
+`circle_diameter_mm` for a circle grid). Files without
 these keys (older files) read as before.
 """
 
@@ -65,7 +67,9 @@ NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
 VIEW_KEYS = ("corners_px", "stripe_px", "source", "board_motion_px")
 DROPPED_KEYS = ("view", "images", "reason")
 STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
-STAGE_TARGET_KEYS = ("delta_omega_deg", "board_points_mm", "views", "dropped_views")
+STAGE_TARGET_KEYS = (
+    "delta_omega_deg", "board_points_mm", "circle_diameter_mm", "views", "dropped_views",
+)  # fmt: skip
 STAGE_TARGET_VIEW_KEYS = ("table_step", "corners_px", "stripe_px", "source")
 STAGE_TARGET_DROPPED_KEYS = ("table_step", "images", "reason")
 
@@ -127,6 +131,8 @@ class StageTargetViews:
       [`DroppedView`][] with `view` = the table step.
     - `stripe_px`: per view the laser line's pixels on the target (empty: none; the
       laser plane's distance from the target then ties the plane to the table).
+    - `circle_diameter_mm`: the target's points are centres of circles of this diameter
+      and `corners_px` the centroids of their images (as `Observations`'); None: points.
     """
 
     delta_omega_deg: float
@@ -136,6 +142,7 @@ class StageTargetViews:
     sources: tuple[tuple[str, ...], ...] = ()
     dropped: list[DroppedView] = dataclasses.field(default_factory=list)
     stripe_px: tuple[np.ndarray, ...] = ()  # per view (K, 2): the laser line on the target
+    circle_diameter_mm: float | None = None  # as `Observations.circle_diameter_mm`
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,6 +241,18 @@ def _number(value, where: str, *, positive: bool = False) -> float:
     return float(value)
 
 
+def _circle_diameter(doc: dict, board: np.ndarray, where: str) -> float | None:
+    """An optional `circle_diameter_mm` of the object `doc` whose points are `board`."""
+    at = f"{where}.circle_diameter_mm" if where else "circle_diameter_mm"
+    value = doc.get("circle_diameter_mm")
+    if value is None:
+        return None
+    value = _number(value, at, positive=True)
+    if not np.all(board[:, 2] == board[0, 2]):
+        raise ObservationsError(f"{at} needs a flat board (board_points_mm with one z)")
+    return value
+
+
 def parse_observations(doc) -> Observations:
     """Validate a decoded observations document; raises `ObservationsError`."""
     if not isinstance(doc, dict):
@@ -274,13 +293,7 @@ def parse_observations(doc) -> Observations:
     board = _points(_require(doc, "board_points_mm", ""), "board_points_mm", 3)
     if len(board) < 4:
         raise ObservationsError(f"board_points_mm has {len(board)} points; at least 4 needed")
-    diameter = doc.get("circle_diameter_mm")
-    if diameter is not None:
-        diameter = _number(diameter, "circle_diameter_mm", positive=True)
-        if not np.all(board[:, 2] == board[0, 2]):
-            raise ObservationsError(
-                "circle_diameter_mm needs a flat board (board_points_mm with one z)"
-            )
+    diameter = _circle_diameter(doc, board, "")
     views_doc = _require(doc, "views", "")
     if not isinstance(views_doc, list):
         raise ObservationsError("views must be a list")
@@ -362,6 +375,7 @@ def _parse_stage_target(sd) -> StageTargetViews:
         raise ObservationsError(
             f"stage_target.board_points_mm has {len(board)} points; at least 4 needed"
         )
+    diameter = _circle_diameter(sd, board, "stage_target")
     views_doc = _require(sd, "views", "stage_target")
     if not isinstance(views_doc, list) or not views_doc:
         raise ObservationsError("stage_target.views must be a non-empty list")
@@ -402,7 +416,7 @@ def _parse_stage_target(sd) -> StageTargetViews:
         dropped.append(DroppedView(k, _names(dd.get("images", []), f"{where}.images"), reason))
     return StageTargetViews(
         dw, board, np.asarray(steps, dtype=np.int64), np.stack(corners), tuple(sources), dropped,
-        tuple(stripes) if any(len(x) for x in stripes) else (),
+        tuple(stripes) if any(len(x) for x in stripes) else (), diameter,
     )  # fmt: skip
 
 
@@ -499,6 +513,11 @@ def observations_to_dict(obs: Observations) -> dict:
         doc["stage_target"] = {
             "delta_omega_deg": float(t.delta_omega_deg),
             "board_points_mm": _rows(np.asarray(t.board_points_mm)),
+            **(
+                {}
+                if t.circle_diameter_mm is None
+                else {"circle_diameter_mm": float(t.circle_diameter_mm)}
+            ),
             "views": [
                 {
                     "table_step": int(k),
