@@ -103,17 +103,14 @@ def table_target_errors_px(params, data) -> Float[Array, "F M 2"]:
     """Reprojection errors (px) of the table target's corners; 0 where not detected."""
     from ._model import circle_outlines, outline_centroids
 
-    t = data.table
+    t, ring = data.table, data.table.circle_ring
+    board = t.board if ring is None else circle_outlines(t.board, ring)
 
     def one(step, uv_obs, w):
-        if t.circle_ring is None:
-            X = table_points_c(params.stage, params.table_pose, t.board, step)
-            uv, _ = jax.vmap(params.camera.project_one)(X)
-        else:  # a circle grid: the centroids of the circles' images
-            outline = circle_outlines(t.board, t.circle_ring)
-            X = table_points_c(params.stage, params.table_pose, outline, step)
-            uv, _ = jax.vmap(params.camera.project_one)(X)
-            uv = outline_centroids(uv, t.circle_ring.shape[0])
+        X = table_points_c(params.stage, params.table_pose, board, step)
+        uv, _ = jax.vmap(params.camera.project_one)(X)
+        if ring is not None:  # a circle grid: the centroids of the circles' images
+            uv = outline_centroids(uv, ring.shape[0])
         return (uv - uv_obs) * w[:, None]
 
     return jax.vmap(one)(t.steps, t.corners, t.w)
