@@ -585,23 +585,33 @@ def test_colour_clipped_line_along_checker_edges(cam, tmp_path, row, sweep, cove
     assert m.sum() >= 20 and np.hypot(*(v.corners_px - corners)[m].T).max() < 0.1
 
 
-def test_cli_circle_grid_states_the_diameter_it_assumed(cam, tmp_path, capsys):
+def test_cli_circle_grid_states_the_diameter_it_used(cam, tmp_path, capsys):
     # calibration models a dot's point as the centroid of its image, which needs the
-    # dot's diameter: given, it is written as given; not given, half the spacing is
-    # assumed, written, and said
+    # dot's diameter (0.08 mm printed here): given, it is written as given, with a warning
+    # when the images measure it more than 10 % off; not given, the measured one is
+    # written (the measurement: within 0.1 % on renders; 2 % asserted) and said
     grid = CircleGrid(7, 6, 0.2, 0.08)
     rig, truth, _ = _scene(cam, grid)
     images = tmp_path / "images"
     write_scene_images(images, rig, grid, truth, layout="pair", seed=2)
     base = ["detect", str(images), "--target", "circles", "--board", "7x6", "--spacing-mm",
             "0.2", "--pixel-pitch-mm", "0.0044", "0.0044"]  # fmt: skip
-    for extra, diameter, note in [(["--circle-diameter-mm", "0.08"], 0.08, False),
-                                  ([], 0.1, True)]:  # fmt: skip
-        out = tmp_path / f"obs{len(extra)}.json"
+    for i, extra in enumerate([["--circle-diameter-mm", "0.08"], [],
+                               ["--circle-diameter-mm", "0.12"]]):  # fmt: skip
+        out = tmp_path / f"obs{i}.json"
         assert main(base + extra + ["--out", str(out)]) == 0, capsys.readouterr().err
         printed = capsys.readouterr().out
-        assert read_observations(out).circle_diameter_mm == diameter
-        assert ("circle diameter not given; 0.1 mm (half the spacing) assumed" in printed) == note
+        written = read_observations(out).circle_diameter_mm
+        if i == 0:
+            assert written == 0.08
+            assert "circles measure" not in printed and "not given" not in printed
+        elif i == 1:
+            assert abs(written - 0.08) < 0.02 * 0.08, written
+            assert "circle diameter not given; 0.08" in printed
+            assert "measured in the images" in printed
+        else:
+            assert written == 0.12
+            assert "warning: the circles measure 0.08" in printed and "not the 0.12 mm" in printed
 
 
 def test_cli_charuco_previews_and_errors(cam, tmp_path, capsys):

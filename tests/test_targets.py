@@ -126,6 +126,24 @@ def test_circle_grid_matches_truth(cam, grid):
     assert light.found and np.hypot(*(light.corners_px - truth).T).max() <= 0.05
 
 
+@pytest.mark.parametrize("grid", [GRID, AGRID], ids=["symmetric", "asymmetric"])
+def test_circle_diameters_are_measured_in_the_image(cam, grid):
+    # the printed diameter from each dot's area over the local area scale: blurred,
+    # noisy, tilted, dark or light dots; rendered dots 18-27 px across, so a one-pixel
+    # error of the area's rim would be ~5-8 %: the median is asserted within 2 %
+    from scheimflux.targets import circle_diameters_mm
+
+    f, truth = _view(cam, grid, rot_deg=183.0, tilt_deg=(20.0, 0.0))
+    img = render_target(grid, f, shape=SHAPE, blur_sigma_px=1.0, noise_sigma=0.01, seed=3)
+    for im in (img, 255 - img):
+        d = circle_diameters_mm(im, grid, truth)
+        assert np.isfinite(d).sum() >= 0.9 * grid.num_corners
+        assert abs(np.nanmedian(d) / grid.diameter_mm - 1) < 0.02, np.nanmedian(d)
+    nan = truth.copy()
+    nan[0] = np.nan
+    assert np.isnan(circle_diameters_mm(img, grid, nan)[0])  # not detected: not measured
+
+
 def test_circle_grid_order_rule(cam):
     # turned so that the truth's point 0 is not nearest the top-left: the detection
     # returns the same circles relabelled by a proper symmetry of the grid

@@ -101,7 +101,10 @@ def register(subparsers) -> None:
         help="ChArUco: OpenCV predefined ArUco dictionary (default: %(default)s)",
     )
     p.add_argument(
-        "--circle-diameter-mm", type=float, metavar="D", help="circle diameter (default S / 2)"
+        "--circle-diameter-mm",
+        type=float,
+        metavar="D",
+        help="printed circle diameter (default: measured in the images)",
     )
     p.add_argument("--mirrored", action="store_true", help="images taken through a mirror")
     p.add_argument(
@@ -258,6 +261,9 @@ def run(args: argparse.Namespace) -> int:
         preview_dir=args.preview,
         on_note=_report,
     )
+    circle_note = ""
+    if obs.circle_diameter_mm is not None:
+        obs, circle_note = _circle_diameter(obs, report, args.circle_diameter_mm)
     write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in obs.views)
     n_points = sum(int(v.corner_mask.sum()) for v in obs.views)
@@ -284,13 +290,43 @@ def run(args: argparse.Namespace) -> int:
         print(f"dropped {len(dropped)} table step(s): {_by_reason(dropped, 'step')}")
     if report.previews:
         print(f"{len(report.previews)} preview(s) in {args.preview}")
-    if obs.circle_diameter_mm is not None and args.circle_diameter_mm is None:
-        print(
-            f"note: circle diameter not given; {obs.circle_diameter_mm:g} mm (half the "
-            "spacing) assumed: calibration models each point as the centroid of its "
-            "circle's image, so state the printed diameter with --circle-diameter-mm"
-        )
+    if circle_note:
+        print(circle_note)
     return 0
+
+
+CIRCLE_DIAMETER_TOLERANCE = 0.1  # relative; the measurement is within ~0.1 % on renders
+
+
+def _circle_diameter(obs, report, given: float | None):
+    """The circle diameter to write and a note: calibration models each circle's
+    detected point as the centroid of its image, which needs the printed diameter. Given:
+    kept, and a warning when the images measure it more than 10 % off. Not given: the
+    diameter measured in the images, else half the spacing, said either way."""
+    import dataclasses
+
+    measured = report.measured_circle_diameter_mm()
+    n = len(report.circle_diameters_mm)
+    if given is not None:
+        if measured is not None and abs(given - measured) > CIRCLE_DIAMETER_TOLERANCE * measured:
+            return obs, (
+                f"warning: the circles measure {measured:.4g} mm across in the images "
+                f"(median of {n}), not the {given:g} mm of --circle-diameter-mm: calibration "
+                "models each circle's image with the stated diameter; check it"
+            )
+        return obs, ""
+    if measured is None:
+        return obs, (
+            f"note: circle diameter not given and not measurable in the images; "
+            f"{obs.circle_diameter_mm:g} mm (half the spacing) assumed: calibration models "
+            "each point as the centroid of its circle's image, so state the printed "
+            "diameter with --circle-diameter-mm"
+        )
+    return dataclasses.replace(obs, circle_diameter_mm=measured), (
+        f"note: circle diameter not given; {measured:.4g} mm measured in the images "
+        f"(median of {n} circles) written: calibration models each point as the centroid "
+        "of its circle's image; state the printed diameter with --circle-diameter-mm"
+    )
 
 
 def _by_reason(dropped, word: str) -> str:

@@ -6,7 +6,11 @@ from ._charuco import (
     aruco_dictionary_names as aruco_dictionary_names,
     detect_charuco as detect_charuco,
 )
-from ._circles import CircleGrid as CircleGrid, detect_circles as detect_circles
+from ._circles import (
+    CircleGrid as CircleGrid,
+    circle_diameters_mm as circle_diameters_mm,
+    detect_circles as detect_circles,
+)
 from ._detect import detect_checkerboard as detect_checkerboard
 from ._result import DetectionResult as DetectionResult
 from ._target import (

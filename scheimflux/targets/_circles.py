@@ -36,7 +36,7 @@ import numpy as np
 
 from ._result import DetectionResult, grey_float, to_uint8
 
-__all__ = ["CircleGrid", "detect_circles"]
+__all__ = ["CircleGrid", "circle_diameters_mm", "detect_circles"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,3 +247,53 @@ def detect_circles(
     best = min(cands, key=lambda c: float(np.hypot(*c[0])))
     note = "" if len(cands) == 1 else "point 0 taken nearest the image's top-left (symmetric grid)"
     return DetectionResult(np.ascontiguousarray(best), True, note)
+
+
+def circle_diameters_mm(image: Any, grid: CircleGrid, corners_px: np.ndarray) -> np.ndarray:
+    """The printed diameter of each detected circle, measured in the image (mm; NaN where
+    it cannot be measured: not detected, too near the image's edge, no contrast).
+
+    Each circle's image is the region around its detected centre darker (lighter, for
+    light circles) than the midpoint between the centre's grey level and the
+    background's (the 90th or 10th percentile of a window 1.5 spacings wide); its area
+    `A` px over the local area scale `|det J|` (px² per mm², from the homography of the
+    view's points) gives `d = sqrt(4 A / (π |det J|))`. On rendered circle grids the
+    median over a view is within 0.1 % of the printed diameter (0.1454 for 0.1455 mm).
+
+    **Arguments:** `image` grey or BGR (the one the grid was detected in); `grid`;
+    `corners_px` `(M, 2)` the detected centres in `grid`'s order.
+    """
+    out = np.full(grid.num_corners, np.nan)
+    uv = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2)
+    ok = np.all(np.isfinite(uv), axis=1)
+    norm, problem = grey_float(image)
+    if problem or ok.sum() < 4:
+        return out
+    xy = grid.points_mm[:, :2]
+    H, _ = cv2.findHomography(xy[ok], uv[ok])
+    if H is None:
+        return out
+    h, w = norm.shape
+    for k in np.flatnonzero(ok):
+        p = H @ np.array([xy[k, 0], xy[k, 1], 1.0])
+        J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
+        det = abs(float(np.linalg.det(J)))
+        r = int(math.ceil(0.75 * grid.spacing_mm * math.sqrt(det))) + 2
+        u0, v0 = int(round(uv[k, 0])), int(round(uv[k, 1]))
+        if not (r <= u0 < w - r and r <= v0 < h - r) or det <= 0:
+            continue
+        win = norm[v0 - r : v0 + r + 1, u0 - r : u0 + r + 1]
+        inner = float(win[r - 1 : r + 2, r - 1 : r + 2].mean())
+        dark = inner < float(np.median(win))
+        bg = float(np.percentile(win, 90 if dark else 10))
+        if abs(bg - inner) < 1e-3:
+            continue
+        mask = (win < 0.5 * (inner + bg)) if dark else (win > 0.5 * (inner + bg))
+        _, lab = cv2.connectedComponents(mask.astype(np.uint8))
+        if lab[r, r] == 0:
+            continue
+        region = lab == lab[r, r]
+        if region[0].any() or region[-1].any() or region[:, 0].any() or region[:, -1].any():
+            continue  # the region runs out of the window: not one circle
+        out[k] = math.sqrt(4.0 * float(region.sum()) / (math.pi * det))
+    return out
