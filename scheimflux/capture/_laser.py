@@ -39,6 +39,7 @@ import numpy as np
 
 from ..targets._charuco import CharucoBoard
 from ..targets._circles import CircleGrid
+from ..targets._result import homography_jacobian
 
 __all__ = [
     "fill_holes",
@@ -125,18 +126,7 @@ def _homography(corners_px: np.ndarray, xy_mm: np.ndarray):
 def _scale_px_per_mm(Hm: np.ndarray, xy_mm: np.ndarray) -> np.ndarray:
     """The largest local scale (px/mm) of the homography at each board point (the larger
     singular value of its Jacobian)."""
-    x, y = xy_mm[:, 0], xy_mm[:, 1]
-    w = Hm[2, 0] * x + Hm[2, 1] * y + Hm[2, 2]
-    u = (Hm[0, 0] * x + Hm[0, 1] * y + Hm[0, 2]) / w
-    v = (Hm[1, 0] * x + Hm[1, 1] * y + Hm[1, 2]) / w
-    J = np.stack(
-        [
-            np.stack([(Hm[0, 0] - u * Hm[2, 0]) / w, (Hm[0, 1] - u * Hm[2, 1]) / w], -1),
-            np.stack([(Hm[1, 0] - v * Hm[2, 0]) / w, (Hm[1, 1] - v * Hm[2, 1]) / w], -1),
-        ],
-        axis=1,
-    )
-    return np.linalg.svd(J, compute_uv=False)[:, 0]
+    return np.linalg.svd(homography_jacobian(Hm, xy_mm), compute_uv=False)[:, 0]
 
 
 def _all_points(target, corners_px: np.ndarray):

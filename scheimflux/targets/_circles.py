@@ -34,7 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._result import DetectionResult, grey_float, to_uint8
+from ._result import DetectionResult, grey_float, homography_jacobian, to_uint8
 
 __all__ = ["CircleGrid", "circle_diameters_mm", "detect_circles"]
 
@@ -274,10 +274,9 @@ def circle_diameters_mm(image: Any, grid: CircleGrid, corners_px: np.ndarray) ->
     if H is None:
         return out
     h, w = norm.shape
+    dets = np.abs(np.linalg.det(homography_jacobian(H, xy)))
     for k in np.flatnonzero(ok):
-        p = H @ np.array([xy[k, 0], xy[k, 1], 1.0])
-        J = (H[:2, :2] * p[2] - np.outer(p[:2], H[2, :2])) / p[2] ** 2
-        det = abs(float(np.linalg.det(J)))
+        det = float(dets[k])
         r = int(math.ceil(0.75 * grid.spacing_mm * math.sqrt(det))) + 2
         u0, v0 = int(round(uv[k, 0])), int(round(uv[k, 1]))
         if not (r <= u0 < w - r and r <= v0 < h - r) or det <= 0:

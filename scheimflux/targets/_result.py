@@ -37,6 +37,22 @@ class DetectionResult:
         return cls(np.full((n, 2), np.nan), False, message)
 
 
+def homography_jacobian(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """The Jacobians `(N, 2, 2)` (px per mm) of the board → pixel homography `H` at the
+    board points `xy` `(N, 2)`."""
+    x, y = xy[:, 0], xy[:, 1]
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+    return np.stack(
+        [
+            np.stack([(H[0, 0] - u * H[2, 0]) / w, (H[0, 1] - u * H[2, 1]) / w], -1),
+            np.stack([(H[1, 0] - v * H[2, 0]) / w, (H[1, 1] - v * H[2, 1]) / w], -1),
+        ],
+        axis=1,
+    )
+
+
 def grey(image: Any) -> np.ndarray:
     """Float32 grey image from `(H, W)`, `(H, W, 1)`, BGR or BGRA input (any bit depth).
 
