@@ -85,6 +85,15 @@ def test_cli_stage_target_layout(folders, capsys):
         (["--delta-omega-deg", "5"], "--delta-omega-deg needs --scan SCAN_DIR or --stage-target"),
         (["--stage-target", "NOWHERE", "--delta-omega-deg", "5"], "is not a folder"),
         (["--stage-target-board", "7x6"], "need --stage-target"),
+        (
+            ["--target", "circles", "--stage-target-circle-diameter-mm", "0.1"],
+            "--stage-target-circle-diameter-mm need --stage-target",
+        ),
+        (
+            ["--stage-target", "TABLE", "--delta-omega-deg", "5",
+             "--stage-target-circle-diameter-mm", "0.1"],
+            "--stage-target-circle-diameter-mm is for --target circles or acircles",
+        ),  # fmt: skip
     ],
 )
 def test_cli_stage_target_refusals(folders, capsys, extra, message):

@@ -109,10 +109,14 @@ def test_step_image_as_a_board_view(grid_table, tmp_path):
     points and line: one logic for both."""
     _, on, _, _ = grid_table
     shutil.copy(on / "step_0.png", tmp_path / "view_0.png")
-    obs, _ = detect_captures(tmp_path, GRID)
-    st = detect_stage_target(on, GRID, 5.0)
+    obs, report = detect_captures(tmp_path, GRID)
+    dots = []
+    st = detect_stage_target(on, GRID, 5.0, diameters_mm=dots)
     np.testing.assert_array_equal(st.corners_px[0], obs.views[0].corners_px)
     np.testing.assert_array_equal(st.stripe_px[0], obs.views[0].stripe_px)
+    # the dots' diameters measured alike (the step's share of them comes first)
+    assert len(report.circle_diameters_mm) >= 20
+    assert dots[: len(report.circle_diameters_mm)] == report.circle_diameters_mm
 
 
 @pytest.mark.parametrize("which", ["grid", "board"])
@@ -188,3 +192,36 @@ def test_cli_writes_stage_target_stripe(board_table, capsys):
     for i, step in enumerate(st.table_steps):
         _, d = _line_errors(st.stripe_px[i], truths[int(step)][1])
         assert d.max() < 0.1
+
+
+def test_cli_table_circle_diameter_measured_in_its_steps(grid_table, capsys):
+    """A circle grid on the table: calibration models its points as the centroids of the
+    dots' images (test_circle_centroid), which needs the printed diameter (0.08 mm).
+    Not stated, `detect` writes the one measured in the steps' images (within 2 %: the
+    measurement is within 0.1 % on renders, test_targets) and says so; stated for the
+    table target alone (`--stage-target-circle-diameter-mm`) it is written as stated,
+    with a one-line warning when the steps measure it more than 10 % off."""
+    root, on, pair, _ = grid_table
+    images = root / "cli_images"
+    images.mkdir(exist_ok=True)
+    for k in range(3):
+        shutil.copy(on / f"step_{k}.png", images / f"view_{k}.png")
+    base = ["detect", str(images), "--target", "circles", "--board", "7x6", "--spacing-mm",
+            "0.2", "--stage-target", str(pair), "--delta-omega-deg", "5", "--overwrite"]  # fmt: skip
+    out = root / "cli_obs.json"
+    assert main(base + ["--out", str(out)]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    obs = read_observations(out)
+    assert abs(obs.circle_diameter_mm - 0.08) < 0.02 * 0.08, obs.circle_diameter_mm
+    d = obs.stage_target.circle_diameter_mm
+    assert abs(d - 0.08) < 0.02 * 0.08, d
+    assert "the table target's circle diameter not given; 0.08" in printed, printed
+    assert "measured in its step images" in printed
+    given = ["--circle-diameter-mm", "0.08", "--stage-target-circle-diameter-mm", "0.12"]
+    assert main(base + given + ["--out", str(out)]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    obs = read_observations(out)
+    assert obs.circle_diameter_mm == 0.08 and obs.stage_target.circle_diameter_mm == 0.12
+    assert "warning: the table target's circles measure 0.08" in printed, printed
+    assert "not the 0.12 mm of --stage-target-circle-diameter-mm" in printed
+    assert "warning: the circles measure" not in printed  # the boards' 0.08 is right

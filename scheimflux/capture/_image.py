@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..stripe._image import channel_image, estimate_noise
-from ..targets._circles import CircleGrid
+from ..targets._circles import CircleGrid, circle_diameters_mm
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
 from ._albedo import laser_off_model
@@ -33,7 +33,7 @@ from ._laser import (
 )
 from ._region import board_region, board_stripe, laser_free
 
-__all__ = ["ImageLine", "find_target", "line_and_points"]
+__all__ = ["ImageLine", "dot_diameters_mm", "find_target", "line_and_points"]
 
 # The pixels within this many line widths (FWHM) of a clipped line's own pixels are left
 # out of the drawn laser-off image's level fit: a line clipped 150-fold on white (a
@@ -169,6 +169,17 @@ def find_target(image, off, target: Target, *, single: bool, min_points: int,
         found_in = image if opened is None else opened
     res = detect_target(laser_free(found_in), target, mirrored=mirrored)
     return res, opened, _too_few(res, target, min_points)
+
+
+def dot_diameters_mm(image, off, opened, target: Target, res: DetectionResult) -> list[float]:
+    """A circle grid's printed dot diameters (mm) measured in the image its grid was found
+    in ([`find_target`][]: the laser-off image, else the opened one, else the image), one
+    per dot that could be measured ([`circle_diameters_mm`][]); `[]` for other targets."""
+    if not isinstance(target, CircleGrid):
+        return []
+    found_in = off if off is not None else (opened if opened is not None else image)
+    d = circle_diameters_mm(laser_free(found_in), target, res.corners_px)
+    return [float(x) for x in d[np.isfinite(d)]]
 
 
 def line_and_points(

@@ -129,6 +129,7 @@ def detect_session(
             min_points=min_points,
             mirrored=mirrored,
             on_step=note,
+            diameters_mm=report.table_circle_diameters_mm,
         )
         obs = dataclasses.replace(obs, stage_target=views)
     if obs.pixel_pitch_mm is None:

@@ -31,7 +31,7 @@ import numpy as np
 from ..io._observations import DroppedView, StageTargetViews
 from ..targets._target import Target
 from ._folder import IMAGE_SUFFIXES, natural_key, read_image
-from ._image import _is_jpeg, find_target, line_and_points
+from ._image import _is_jpeg, dot_diameters_mm, find_target, line_and_points
 from ._workflow import _SizeCheck
 
 __all__ = ["detect_stage_target", "stage_target_images", "stage_target_steps"]
@@ -90,6 +90,7 @@ def detect_stage_target(
     min_points: int = 6,
     mirrored: bool = False,
     on_step: Callable[[str], None] | None = None,
+    diameters_mm: list[float] | None = None,
 ) -> StageTargetViews:
     """Detect a target fixed to the rotary table in every image of `folder` (module doc).
 
@@ -105,6 +106,9 @@ def detect_stage_target(
       line's reach are dropped).
     - `on_step`: called with a one-line note per dropped step and per remark (points
       dropped next to the line, an unreadable laser-off image).
+    - `diameters_mm`: a list that, for a circle grid, is extended by the dots' diameters
+      measured in the kept steps' images (`capture.dot_diameters_mm`; the file gets the
+      target's stated diameter, `circle_diameter_mm`, as given).
 
     **Returns:** [`StageTargetViews`][] (kept steps with their corners and the laser
     line on the target, dropped steps with reasons). **Raises:** `ValueError` (one
@@ -159,6 +163,8 @@ def detect_stage_target(
         if line.reason:
             drop(k, names, line.reason)
             continue
+        if diameters_mm is not None:
+            diameters_mm.extend(dot_diameters_mm(image, off, opened, target, res))
         steps.append(k)
         corners.append(np.asarray(line.corners, dtype=np.float64))
         stripes.append(np.asarray(line.stripe_uv, dtype=np.float64).reshape(-1, 2))

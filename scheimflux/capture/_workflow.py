@@ -27,14 +27,18 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..io._observations import DroppedView, Nominal, Observations, StageScan, View
-from ..targets._circles import CircleGrid, circle_diameters_mm
 from ..targets._target import Target
 from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
-from ._image import _is_jpeg, find_target, line_and_points
+from ._image import _is_jpeg, dot_diameters_mm, find_target, line_and_points
 from ._motion import MOVED_PX, BoardMotion, board_motion
-from ._region import laser_free
 
 __all__ = ["CaptureReport", "detect_captures", "extract_scan"]
+
+
+def _median_of_4(values) -> float | None:
+    """The median of `values`, or None with fewer than 4."""
+    d = np.asarray(values, dtype=np.float64)
+    return float(np.median(d)) if len(d) >= 4 else None
 
 
 @dataclasses.dataclass
@@ -50,6 +54,9 @@ class CaptureReport:
     - `circle_diameters_mm`: a circle grid's diameters measured in the images the grid
       was found in, every measured circle of every kept view
       ([`measured_circle_diameter_mm`][] their median).
+    - `table_circle_diameters_mm`: the same for the table target's steps
+      (`detect_session(stage_target=...)` with a circle grid;
+      [`measured_table_circle_diameter_mm`][]).
     - `motion`: per view number of a pair, or of a single image with a laser-off image,
       the board's motion from the image its target was found in (board image, laser-off
       image) to the one its line was read from ([`BoardMotion`][]; `checked` False: it
@@ -64,12 +71,16 @@ class CaptureReport:
     previews: list[str] = dataclasses.field(default_factory=list)
     motion: dict[int, BoardMotion] = dataclasses.field(default_factory=dict)
     circle_diameters_mm: list[float] = dataclasses.field(default_factory=list)
+    table_circle_diameters_mm: list[float] = dataclasses.field(default_factory=list)
 
     def measured_circle_diameter_mm(self) -> float | None:
         """The median of the circles' diameters measured in the images (a circle grid;
         [`circle_diameters_mm`][]), or None with fewer than 4 measured."""
-        d = np.asarray(self.circle_diameters_mm, dtype=np.float64)
-        return float(np.median(d)) if len(d) >= 4 else None
+        return _median_of_4(self.circle_diameters_mm)
+
+    def measured_table_circle_diameter_mm(self) -> float | None:
+        """As [`measured_circle_diameter_mm`][] for the table target's steps."""
+        return _median_of_4(self.table_circle_diameters_mm)
 
     def motion_summary(self) -> str:
         """One line on the views' board motion ("" when none was checked or not)."""
@@ -201,10 +212,7 @@ def detect_captures(
             continue
         if res.message:
             note(cv, res.message)
-        if isinstance(target, CircleGrid):  # measured where the grid was found
-            found_in = off if off is not None else (opened if opened is not None else image)
-            d = circle_diameters_mm(laser_free(found_in), target, res.corners_px)
-            dots = [float(x) for x in d[np.isfinite(d)]]
+        dots = dot_diameters_mm(image, off, opened, target, res)  # circle grids only
         simg = None
         if cv.stripe is None:
             note(cv, f"no stripe image (view_{cv.view}_stripe.<ext>); no stripe")
@@ -262,8 +270,7 @@ def detect_captures(
             )  # fmt: skip
         views.append(View(corners, stripe_uv, cv.names, motion_px))
         report.kept.append(cv.view)
-        if isinstance(target, CircleGrid):
-            report.circle_diameters_mm.extend(dots)
+        report.circle_diameters_mm.extend(dots)
 
     if not views:
         why = "; ".join(f"view {d.view}: {d.reason}" for d in report.dropped[:3])

@@ -39,7 +39,9 @@ laser-off image the target points within its reach are dropped. A step whose tar
 not found is dropped with the reason and the others keep their step numbers. The table
 target is the
 calibration target unless --stage-target-board/--stage-target-square-mm give another
-(same --target kind).
+(same --target kind); a circle grid's dot diameter there is
+--stage-target-circle-diameter-mm, else --circle-diameter-mm, else measured in the step
+images.
 
 Exits 0 when the target was found in at least one view.
 """
@@ -140,6 +142,11 @@ def register(subparsers) -> None:
         "--square-mm (default: --square-mm)",
     )  # fmt: skip
     p.add_argument(
+        "--stage-target-circle-diameter-mm", type=float, metavar="D", help="the table "
+        "target's --circle-diameter-mm (default: --circle-diameter-mm, else measured in "
+        "its images)",
+    )  # fmt: skip
+    p.add_argument(
         "--delta-omega-deg", type=float, metavar="D",
         help="table step between scan frames / stage-target images",
     )  # fmt: skip
@@ -167,15 +174,16 @@ def _check_args(args) -> None:
         raise CLIError(f"--pixel-pitch-mm must be positive, got {args.pixel_pitch_mm}")
     require_positive(
         args, "focal_length_mm", "magnification", "gauge_radius_mm", "stripe_width_px",
-        "marker_mm", "circle_diameter_mm",
+        "marker_mm", "circle_diameter_mm", "stage_target_circle_diameter_mm",
     )  # fmt: skip
     require_positive(args, "board_margin_px", zero_ok=True)
     if args.min_points < 4:
         raise CLIError(f"--min-points must be at least 4, got {args.min_points}")
     if args.marker_mm is not None and args.target != "charuco":
         raise CLIError("--marker-mm is for --target charuco")
-    if args.circle_diameter_mm is not None and args.target not in ("circles", "acircles"):
-        raise CLIError("--circle-diameter-mm is for --target circles or acircles")
+    for name in ("circle_diameter_mm", "stage_target_circle_diameter_mm"):
+        if getattr(args, name) is not None and args.target not in ("circles", "acircles"):
+            raise CLIError(f"--{name.replace('_', '-')} is for --target circles or acircles")
     if args.scan is not None:
         if args.delta_omega_deg is None or args.gauge_radius_mm is None:
             raise CLIError("--scan needs --delta-omega-deg and --gauge-radius-mm")
@@ -196,8 +204,15 @@ def _check_args(args) -> None:
             raise CLIError("--stage-target needs --delta-omega-deg (the table step per image)")
         if not os.path.isdir(args.stage_target):
             raise CLIError(f"--stage-target {args.stage_target} is not a folder")
-    elif args.stage_target_board is not None or args.stage_target_square_mm is not None:
-        raise CLIError("--stage-target-board and --stage-target-square-mm need --stage-target")
+    elif (
+        args.stage_target_board is not None
+        or args.stage_target_square_mm is not None
+        or args.stage_target_circle_diameter_mm is not None
+    ):
+        raise CLIError(
+            "--stage-target-board, --stage-target-square-mm and "
+            "--stage-target-circle-diameter-mm need --stage-target"
+        )
     if args.delta_omega_deg is not None:
         if args.scan is None and args.stage_target is None:
             raise CLIError("--delta-omega-deg needs --scan SCAN_DIR or --stage-target DIR")
@@ -233,14 +248,18 @@ def run(args: argparse.Namespace) -> int:
         diameter_mm=args.circle_diameter_mm,
     )
     table_target = None
-    if args.stage_target_board is not None or args.stage_target_square_mm is not None:
+    table_given = args.stage_target_circle_diameter_mm
+    if table_given is None:
+        table_given = args.circle_diameter_mm
+    own_table = args.stage_target_board is not None or args.stage_target_square_mm is not None
+    if own_table or args.stage_target_circle_diameter_mm is not None:
         table_target = make_target(
             args.target,
             args.stage_target_board or args.board,
             args.stage_target_square_mm or args.square_mm,
             marker_mm=args.marker_mm,
             dictionary=args.dictionary,
-            diameter_mm=args.circle_diameter_mm,
+            diameter_mm=table_given,
         )
     obs, report = detect_session(
         args.images_dir,
@@ -261,9 +280,8 @@ def run(args: argparse.Namespace) -> int:
         preview_dir=args.preview,
         on_note=_report,
     )
-    circle_note = ""
-    if obs.circle_diameter_mm is not None:
-        obs, circle_note = _circle_diameter(obs, report, args.circle_diameter_mm)
+    circle_notes = _circle_diameters(args, obs, report, table_given, own_table)
+    obs = circle_notes.pop(0)
     write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in obs.views)
     n_points = sum(int(v.corner_mask.sum()) for v in obs.views)
@@ -290,42 +308,76 @@ def run(args: argparse.Namespace) -> int:
         print(f"dropped {len(dropped)} table step(s): {_by_reason(dropped, 'step')}")
     if report.previews:
         print(f"{len(report.previews)} preview(s) in {args.preview}")
-    if circle_note:
-        print(circle_note)
+    for line in circle_notes:
+        print(line)
     return 0
 
 
 CIRCLE_DIAMETER_TOLERANCE = 0.1  # relative; the measurement is within ~0.1 % on renders
 
 
-def _circle_diameter(obs, report, given: float | None):
-    """The circle diameter to write and a note: calibration models each circle's
-    detected point as the centroid of its image, which needs the printed diameter. Given:
-    kept, and a warning when the images measure it more than 10 % off. Not given: the
-    diameter measured in the images, else half the spacing, said either way."""
+def _circle_diameters(args, obs, report, table_given, own_table) -> list:
+    """`[observations, *notes]`: the circle diameters to write (the boards' and the table
+    target's; calibration models each circle's detected point as the centroid of its
+    image, which needs the printed diameter) and one line per choice made. Given: kept,
+    with a warning when the images measure it more than 10 % off. Not given: the
+    diameter measured in the images (the table target's own steps, else, for the boards'
+    own target, the boards'), else half the spacing, said either way."""
     import dataclasses
 
-    measured = report.measured_circle_diameter_mm()
-    n = len(report.circle_diameters_mm)
+    notes = []
+    if obs.circle_diameter_mm is not None:
+        d, note = _circle_diameter(
+            "the circles", "--circle-diameter-mm", obs.circle_diameter_mm,
+            args.circle_diameter_mm, report.measured_circle_diameter_mm(),
+            len(report.circle_diameters_mm), "in the images",
+        )  # fmt: skip
+        obs = dataclasses.replace(obs, circle_diameter_mm=d)
+        notes.append(note)
+    st = obs.stage_target
+    if st is not None and st.circle_diameter_mm is not None:
+        measured = report.measured_table_circle_diameter_mm()
+        n, where = len(report.table_circle_diameters_mm), "in its step images"
+        if measured is None and not own_table:  # the boards' target: measured there
+            measured, where = report.measured_circle_diameter_mm(), "on the boards"
+            n = len(report.circle_diameters_mm)
+        option = (
+            "--stage-target-circle-diameter-mm"
+            if args.stage_target_circle_diameter_mm is not None
+            else "--circle-diameter-mm"
+        )
+        d, note = _circle_diameter(
+            "the table target's circles", option, st.circle_diameter_mm, table_given,
+            measured, n, where,
+        )  # fmt: skip
+        obs = dataclasses.replace(obs, stage_target=dataclasses.replace(st, circle_diameter_mm=d))
+        notes.append(note)
+    return [obs, *(n for n in notes if n)]
+
+
+def _circle_diameter(what, option, assumed, given, measured, n, where) -> tuple[float, str]:
+    """`(diameter, note)` for one target's circles (`what`): `given` (stated by `option`)
+    kept, warned about when `measured` (the median of `n` measured `where`) is more than
+    10 % off it; else `measured`, else `assumed` (half the spacing), said."""
     if given is not None:
         if measured is not None and abs(given - measured) > CIRCLE_DIAMETER_TOLERANCE * measured:
-            return obs, (
-                f"warning: the circles measure {measured:.4g} mm across in the images "
-                f"(median of {n}), not the {given:g} mm of --circle-diameter-mm: calibration "
-                "models each circle's image with the stated diameter; check it"
+            return given, (
+                f"warning: {what} measure {measured:.4g} mm across {where} (median of {n}), "
+                f"not the {given:g} mm of {option}: calibration models each circle's image "
+                "with the stated diameter; check it"
             )
-        return obs, ""
+        return given, ""
+    name = what.replace("the circles", "circle").replace("circles", "circle")
     if measured is None:
-        return obs, (
-            f"note: circle diameter not given and not measurable in the images; "
-            f"{obs.circle_diameter_mm:g} mm (half the spacing) assumed: calibration models "
-            "each point as the centroid of its circle's image, so state the printed "
-            "diameter with --circle-diameter-mm"
+        return assumed, (
+            f"note: {name} diameter not given and not measurable in the images; "
+            f"{assumed:g} mm (half the spacing) assumed: calibration models each point as "
+            f"the centroid of its circle's image, so state the printed diameter with {option}"
         )
-    return dataclasses.replace(obs, circle_diameter_mm=measured), (
-        f"note: circle diameter not given; {measured:.4g} mm measured in the images "
-        f"(median of {n} circles) written: calibration models each point as the centroid "
-        "of its circle's image; state the printed diameter with --circle-diameter-mm"
+    return measured, (
+        f"note: {name} diameter not given; {measured:.4g} mm measured {where} (median of "
+        f"{n} circles) written: calibration models each point as the centroid of its "
+        f"circle's image; state the printed diameter with {option}"
     )
 
 
