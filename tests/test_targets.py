@@ -15,7 +15,7 @@ from scheimflux.targets import (
     detect_target,
     make_target,
 )
-from scheimflux.targets._circles import _symmetries
+from scheimflux.targets._circles import _handedness, _rows_reordered, _symmetries
 
 CROP = (400.0, 300.0)  # an 800 x 600 crop of the 1600 x 1200 sensor keeps renders fast
 SHAPE = (600, 800)
@@ -164,6 +164,62 @@ def test_circle_grid_order_rule(cam):
     assert np.hypot(*res.corners_px[0]) == pytest.approx(nearest, abs=0.1)
     mirrored = detect_target(img[:, ::-1], GRID, mirrored=True)
     assert mirrored.found
+
+
+# A board → pixel homography under which OpenCV 4's `findCirclesGrid` returns the right
+# rows of an 11 x 8 asymmetric grid in the wrong order (pairs of rows, the pairs taken in
+# reverse): the first view of an 8 mm Tessar at x0.5 with its sensor tilted 22 degrees
+# (`scheimflux simulate --lens tessar --magnification 0.5 --target acircles`), where
+# every view of a capture was refused before the rows were re-ordered.
+STEEP_H = np.array(
+    [
+        [119.7568, 38.40234, 520.2193],
+        [-2.505639, 141.4379, 247.0355],
+        [-5.147006e-3, 3.902186e-2, 1.0],
+    ]
+)
+STEEP_GRID = CircleGrid(11, 8, 0.394, 0.197, asymmetric=True)
+
+
+def _homography_map(H):
+    return lambda xy: cv2.perspectiveTransform(np.asarray(xy, np.float64)[None], H)[0]
+
+
+def test_circle_grid_rows_opencv_misorders_are_reordered():
+    f = _homography_map(STEEP_H)
+    img = render_target(STEEP_GRID, f, shape=(1200, 1600), blur_sigma_px=1.0, seed=7)
+    xy = STEEP_GRID.points_mm[:, :2]
+    res = detect_target(img, STEEP_GRID)
+    assert res.found, res.message
+    # truth independent of the detector: the centroid of each dot's image (an ellipse
+    # under a homography), from its outline mapped at 256 points (polygon centroid)
+    t = np.linspace(0.0, 2 * np.pi, 256, endpoint=False)
+    ring = 0.5 * STEEP_GRID.diameter_mm * np.stack([np.cos(t), np.sin(t)], axis=1)
+    truth = []
+    for c in xy:
+        p = f(c + ring)
+        q = np.roll(p, -1, axis=0)
+        cross = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
+        truth.append(((p + q) * cross[:, None]).sum(0) / (3.0 * cross.sum()))
+    truth = np.asarray(truth)
+    best = min(
+        (np.hypot(*(res.corners_px[perm] - truth).T).max() for perm, d in _symmetries(xy)
+         if d == 1.0),
+    )  # fmt: skip
+    # blob centres on a blurred 8-bit render: within 0.05 px of the centroids (the
+    # circle-grid tolerance of test_circle_grid_matches_truth); the centres' own images
+    # are 0.1-0.2 px away here, so this also says the points are centroids
+    assert best < 0.05, best
+    # the repair itself: OpenCV's rows in its wrong order (pairs reversed) come back in
+    # the grid's order, and an order that is wrong within the rows is not "repaired"
+    right = f(xy)
+    rows = right.reshape(8, 11, 2)
+    wrong = rows[[6, 7, 4, 5, 2, 3, 0, 1]].reshape(-1, 2)
+    assert _handedness(xy, wrong)[1] > 10.0
+    fixed, _, worst = _rows_reordered(xy, wrong, STEEP_GRID.pattern_size)
+    assert worst < 1e-3 and np.allclose(fixed, right)  # (the homography refit: ~1e-5 px)
+    scrambled = rows[:, np.random.default_rng(0).permutation(11)].reshape(-1, 2)
+    assert _rows_reordered(xy, scrambled, STEEP_GRID.pattern_size)[2] > 10.0
 
 
 def test_circle_grid_not_found(cam):

@@ -193,6 +193,27 @@ def _handedness(xy: np.ndarray, uv: np.ndarray) -> tuple[float, float]:
     )
 
 
+def _rows_reordered(
+    xy: np.ndarray, uv: np.ndarray, pattern_size: tuple[int, int]
+) -> tuple[np.ndarray, float, float]:
+    """OpenCV's centres with its rows (`pattern_size = (per row, rows)` consecutive
+    points each) sorted by their position across the rows, in whichever direction fits
+    the grid better: `(centres, handedness, worst residual px)` of that order (its
+    residual decides whether it is used, as for OpenCV's own order)."""
+    cols, rows = pattern_size
+    R = uv.reshape(rows, cols, 2)
+    along = np.sum(R[:, -1] - R[:, 0], axis=0)
+    normal = np.array([-along[1], along[0]]) / max(float(np.hypot(*along)), 1e-12)
+    key = R.mean(axis=1) @ normal
+    best = (uv, 0.0, math.inf)
+    for order in (np.argsort(key), np.argsort(-key)):
+        cand = R[order].reshape(-1, 2)
+        sign, worst = _handedness(xy, cand)
+        if worst < best[2]:
+            best = (cand, sign, worst)
+    return best
+
+
 def detect_circles(
     image: Any, grid: CircleGrid, *, polarity: str = "auto", mirrored: bool = False
 ) -> DetectionResult:
@@ -232,9 +253,15 @@ def detect_circles(
     sign, worst = _handedness(xy, uv)
     spacing = float(np.linalg.norm(uv[1] - uv[0]))
     if not worst < 0.25 * spacing:
-        return DetectionResult.failed(
-            grid.num_corners, what + f": OpenCV's order does not fit the grid ({worst:.1f} px)"
-        )
+        # OpenCV's rows are right but their order is not (seen under strong perspective:
+        # rows taken in pairs, the pairs in reverse order): the rows re-ordered across
+        # the grid, kept only if they then fit it as well as a right order must
+        uv, sign, better = _rows_reordered(xy, uv, grid.pattern_size)
+        if not better < 0.25 * spacing:
+            return DetectionResult.failed(
+                grid.num_corners,
+                what + f": OpenCV's order does not fit the grid ({worst:.1f} px)",
+            )
     cands = []
     for perm, d in _symmetries(xy):
         if (sign * d > 0) == mirrored:
