@@ -244,6 +244,27 @@ def _build_rig(args):
     )
 
 
+SHARP_SPOT_PX = 2.0  # RMS spot radius (pixels) beyond which the rig's focus is called poor
+
+
+def _focus_note(rig) -> str:
+    """A warning when the lens images the laser plane with spots wider than
+    `SHARP_SPOT_PX` RMS (a bundle over the whole aperture, 25 points over the sensor),
+    else "". The pixels simulated are chief rays (or the bundles' centroids): they stay
+    sharp whatever the spots, real images through such a rig would not."""
+    s = rig.summary()
+    px = 1e-3 * s["rms_spot_um_mean"] / min(float(rig.dx), float(rig.dy))
+    if not px > SHARP_SPOT_PX:
+        return ""
+    return (
+        f"warning: the lens images the laser plane with spots of {s['rms_spot_um_mean']:.0f} "
+        f"um RMS ({px:.0f} px; worst {s['rms_spot_um_max']:.0f} um) at its aperture: the "
+        "simulated pixels are the rays' and stay sharp, real images through this rig "
+        "would be blurred; stop the lens down (its prescription's stop semi_diameter) "
+        "or choose another lens or magnification"
+    )
+
+
 def _target(args, pitch_mm: float):
     """The target of `--target`, `--board` and its options, with pitch `pitch_mm`."""
     from ..targets._target import make_target
@@ -401,6 +422,9 @@ def run(args) -> int:
         f"{math.degrees(r['phi_rad']):.3f} deg, theta = {math.degrees(r['theta_rad']):.3f} "
         f"deg, z0 = {r['z0_mm']:.3f} mm"
     )
+    focus = _focus_note(rig)
+    if focus:
+        print(focus)
     print(
         f"board: {board}; {len(obs.views)} views, {int(mask.sum())} of "
         f"{mask.size} corners seen, {stripe_pts} stripe points on the board"

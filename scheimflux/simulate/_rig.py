@@ -311,6 +311,8 @@ def _laser_plane_for_tilt(par: Paraxial, magnification: float, phi: float, theta
 
 
 def _focus_residuals(pose, rig: Rig, p, d, ok):
+    """Each ray's offset on the sensor from its bundle's centroid (0 for rays that do
+    not arrive) and how many arrive."""
     z0, phi, theta = pose[0], pose[1], pose[2]
     hit = jax.vmap(
         jax.vmap(rig._hit_sensor, in_axes=(0, 0, None, None, None)),
@@ -318,32 +320,48 @@ def _focus_residuals(pose, rig: Rig, p, d, ok):
     )
     q, hit_ok = hit(p, d, z0, phi, theta)
     local = (q - jnp.stack([0.0, 0.0, -z0])) @ sensor_rotation(phi, theta)[:, :2]
-    w = (ok & hit_ok).astype(jnp.float64)
+    arrive = ok & hit_ok & jnp.all(jnp.isfinite(local), axis=-1)
+    w = arrive.astype(jnp.float64)
+    local = jnp.where(arrive[..., None], local, 0.0)
     centre = jnp.sum(local * w[..., None], axis=1, keepdims=True) / jnp.maximum(
         jnp.sum(w, axis=1, keepdims=True)[..., None], 1.0
     )
-    return ((local - centre) * w[..., None]).reshape(-1)
+    return ((local - centre) * w[..., None]).reshape(-1), jnp.sum(arrive)
 
 
 @eqx.filter_jit
 def _refine_pose(rig: Rig, p, d, ok, iterations: int):
-    """Gauss–Newton (lightly damped) on (z0, φ, θ) minimising the summed squared spot
-    radii of the ray bundles (p, d, ok) leaving the lens; they do not depend on the sensor
-    pose, so they are traced once (`_exit_rays`)."""
-    pose = jnp.stack([rig.z0, rig.phi, rig.theta])
+    """Levenberg–Marquardt on (z0, φ, θ) minimising the summed squared spot radii of the
+    ray bundles (p, d, ok) leaving the lens; they do not depend on the sensor pose, so
+    they are traced once (`_exit_rays`). A step is taken only when it lowers the sum
+    and keeps every ray that arrived at the start on the sensor (a steep sensor could
+    otherwise "focus" by letting rays miss it), else the damping grows: the pose never
+    gets worse than the paraxial one it starts from."""
     scale = jnp.asarray([1.0, 1e-2, 1e-2])
+    x0 = jnp.stack([rig.z0, rig.phi, rig.theta]) / scale
 
     def res(x):
         return _focus_residuals(x * scale, rig, p, d, ok)
 
-    def step(_, x):
-        r = res(x)
-        jac = jax.jacfwd(res)(x)
-        jtj = jac.T @ jac
-        jtj = jtj + 1e-9 * jnp.trace(jtj) * jnp.eye(3)
-        return x - jnp.linalg.solve(jtj, jac.T @ r)
+    r0, n0 = res(x0)
 
-    x = jax.lax.fori_loop(0, iterations, step, pose / scale)
+    def step(_, carry):
+        x, lam, cost = carry
+        jac = jax.jacfwd(lambda y: res(y)[0])(x)
+        r = res(x)[0]
+        jtj = jac.T @ jac
+        damp = lam * (jnp.diag(jnp.diag(jtj)) + 1e-12 * jnp.trace(jtj) * jnp.eye(3))
+        xn = x - jnp.linalg.solve(jtj + damp, jac.T @ r)
+        rn, nn = res(xn)
+        cn = rn @ rn
+        good = jnp.isfinite(cn) & (cn < cost) & (nn >= n0) & jnp.all(jnp.isfinite(xn))
+        return (
+            jnp.where(good, xn, x),
+            jnp.where(good, lam * 0.3, lam * 10.0),
+            jnp.where(good, cn, cost),
+        )
+
+    x, _, _ = jax.lax.fori_loop(0, iterations, step, (x0, jnp.asarray(1e-3), r0 @ r0))
     return x * scale
 
 
@@ -360,7 +378,7 @@ def build_rig(
     laser_plane: Float[ArrayLike, "3"] | None = None,
     refine: bool = True,
     n_rays: int = 48,
-    iterations: int = 6,
+    iterations: int = 12,
 ) -> Rig:
     """Place a laser plane and a Scheimpflug-tilted sensor behind a real lens.
 
@@ -378,7 +396,8 @@ def build_rig(
     - `refine`: after placing the sensor on the paraxial conjugate of the laser plane
       (Scheimpflug condition), move (z0, φ, θ) to minimise the RMS spot radii of
       `n_rays`-ray bundles from 3 × 3 laser-plane points spanning 80 % of the sensor,
-      traced through the real lens (`iterations` Gauss–Newton steps).
+      traced through the real lens (`iterations` Levenberg–Marquardt steps, each
+      taken only when it improves the focus and loses no ray off the sensor).
 
     **Returns:** a [`Rig`][]; `rig.summary()` reports the tilt angles and focus quality.
     """
