@@ -257,7 +257,8 @@ def calibrate_camera(
         )
     _check_gauge(gauge, model, distortion, freeze)
     camera, poses, how = _initial(obs, model, init)
-    with _nominal_tilt_checked(obs, camera, how):
+    frozen: list[str] = []  # the solve's frozen set, for the failure's hint
+    with _nominal_tilt_checked(obs, camera, how, frozen):
         data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
         if gauge == "profile":
             camera = eqx.tree_at(lambda c: c.distortion, camera, dist)
@@ -265,6 +266,7 @@ def calibrate_camera(
             f_note = _focal_length_note(obs, model, how, camera, cc.freeze)
             return dataclasses.replace(cc, notes=f_note + cc.notes)
         freeze = _model_freeze(model, how, freeze, opencv_flags)
+        frozen[:] = freeze
         f_note = _focal_length_note(obs, model, how, camera, freeze)
         # The ideal camera first (the distortion at zero, held), then with the distortion
         # free. The distortion is held at run time (`hold`), not frozen: both solves have
@@ -331,21 +333,60 @@ TILT_HINT_DEG = 2.0
 
 
 @contextlib.contextmanager
-def _nominal_tilt_checked(obs, camera, how: str):
+def _nominal_tilt_checked(obs, camera, how: str, frozen: list[str]):
     """Amend a solve's failure from a nominal start with the tilt the boards show, where
     that disagrees with the nominal tilt (a sign, the order of the two angles or a value
     mistyped: the solve then stops as rank-deficient or unconverged, naming parameters
-    that are not the cause)."""
+    that are not the cause). A null direction made of the principal point and the
+    boards' positions is named as that, after the tilt hint where there is one (a
+    swapped nominal tilt leaves that direction too; so does a long lens's weak
+    perspective, which also pulls the closed-form tilt off); `frozen`: the solve's
+    frozen set."""
     try:
         yield
     except (RankDeficientError, NotConvergedError) as err:
         hint = _tilt_disagreement(obs, camera) if how == "nominal" else None
+        pp = isinstance(err, RankDeficientError) and _principal_point_null(err)
+        if pp and hint is None:
+            raise RankDeficientError(_principal_point_hint(err, frozen), err.nulls) from None
         if hint is None:
             raise
+        if pp:  # a wrong tilt leaves this direction too; so does weak perspective
+            message = f"{hint}; if the nominal tilt is right, {_principal_point_hint(err, frozen)}"
+            raise RankDeficientError(message, err.nulls) from None
         message = f"{hint} (the solve from it stopped: {err})"
         if isinstance(err, NotConvergedError):
             raise NotConvergedError(message, err.fit) from None
         raise RankDeficientError(message) from None
+
+
+def _principal_point_null(err: RankDeficientError) -> bool:
+    """Whether the first null direction is the principal point against the boards'
+    positions: its largest component camera.x0 or camera.y0, every other one a board
+    pose's translation or the principal point: the weak perspective of a long lens (the
+    boards' images almost affine), or a nominal tilt far off."""
+    if not err.nulls:
+        return False
+    comps = err.nulls[0][1]
+    pp = ("camera.x0", "camera.y0")
+    return (
+        bool(comps)
+        and comps[0][0] in pp
+        and all(lab in pp or lab.startswith("board_poses.translation") for lab, _ in comps)
+    )
+
+
+def _principal_point_hint(err: RankDeficientError, frozen) -> str:
+    """The failure of `_principal_point_null`, with what to do."""
+    held = [p for p in frozen if p not in ("camera.x0", "camera.y0")]
+    option = " ".join([*held, "camera.x0", "camera.y0"])
+    return (
+        "the views do not determine the principal point: camera.x0, camera.y0 trade off "
+        "with the boards' positions (a long lens sees the boards with too little "
+        "perspective); hold it at the sensor's centre by freezing it too "
+        f"(--freeze {option}; freeze=(...)), or take views with the boards tilted more "
+        f"steeply ({err})"
+    )
 
 
 def _tilt_disagreement(obs, camera) -> str | None:

@@ -48,7 +48,12 @@ ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_pas
 
 class RankDeficientError(ValueError):
     """The data cannot determine the free parameters together (a null direction of the
-    column-scaled Jacobian); the message names the parameters involved."""
+    column-scaled Jacobian); the message names the parameters involved, `.nulls` holds
+    the directions (`null_directions`' list; empty where not known)."""
+
+    def __init__(self, message: str, nulls=()):
+        super().__init__(message)
+        self.nulls = list(nulls)
 
 
 # An eigenvalue of the column-scaled JᵀJ below this fraction of the largest is a null
@@ -101,7 +106,8 @@ def _check_rank(H, params, spec) -> None:
         raise RankDeficientError(
             f"the data do not determine these free parameters together: {names} "
             f"(a null direction of the scaled Jacobian, eigenvalue {lam:.1e} × max; "
-            f"{len(nulls)} such direction(s){more}); freeze one of them"
+            f"{len(nulls)} such direction(s){more}); freeze one of them",
+            nulls,
         )
 
 
