@@ -280,8 +280,7 @@ def run(args: argparse.Namespace) -> int:
         preview_dir=args.preview,
         on_note=_report,
     )
-    circle_notes = _circle_diameters(args, obs, report, table_given, own_table)
-    obs = circle_notes.pop(0)
+    obs, circle_notes = _circle_diameters(args, obs, report, table_given, own_table)
     write_observations(args.out, obs, overwrite=args.overwrite)
     n_stripe = sum(len(v.stripe_px) for v in obs.views)
     n_points = sum(int(v.corner_mask.sum()) for v in obs.views)
@@ -316,8 +315,8 @@ def run(args: argparse.Namespace) -> int:
 CIRCLE_DIAMETER_TOLERANCE = 0.1  # relative; the measurement is within ~0.1 % on renders
 
 
-def _circle_diameters(args, obs, report, table_given, own_table) -> list:
-    """`[observations, *notes]`: the circle diameters to write (the boards' and the table
+def _circle_diameters(args, obs, report, table_given, own_table) -> tuple:
+    """`(observations, notes)`: the circle diameters to write (the boards' and the table
     target's; calibration models each circle's detected point as the centroid of its
     image, which needs the printed diameter) and one line per choice made. Given: kept,
     with a warning when the images measure it more than 10 % off. Not given: the
@@ -352,7 +351,7 @@ def _circle_diameters(args, obs, report, table_given, own_table) -> list:
         )  # fmt: skip
         obs = dataclasses.replace(obs, stage_target=dataclasses.replace(st, circle_diameter_mm=d))
         notes.append(note)
-    return [obs, *(n for n in notes if n)]
+    return obs, [n for n in notes if n]
 
 
 def _circle_diameter(what, option, assumed, given, measured, n, where) -> tuple[float, str]:

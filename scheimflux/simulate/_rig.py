@@ -346,9 +346,8 @@ def _refine_pose(rig: Rig, p, d, ok, iterations: int):
     r0, n0 = res(x0)
 
     def step(_, carry):
-        x, lam, cost = carry
+        x, r, lam, cost = carry  # r: the residuals at x (kept, not recomputed)
         jac = jax.jacfwd(lambda y: res(y)[0])(x)
-        r = res(x)[0]
         jtj = jac.T @ jac
         damp = lam * (jnp.diag(jnp.diag(jtj)) + 1e-12 * jnp.trace(jtj) * jnp.eye(3))
         xn = x - jnp.linalg.solve(jtj + damp, jac.T @ r)
@@ -357,11 +356,13 @@ def _refine_pose(rig: Rig, p, d, ok, iterations: int):
         good = jnp.isfinite(cn) & (cn < cost) & (nn >= n0) & jnp.all(jnp.isfinite(xn))
         return (
             jnp.where(good, xn, x),
+            jnp.where(good, rn, r),
             jnp.where(good, lam * 0.3, lam * 10.0),
             jnp.where(good, cn, cost),
         )
 
-    x, _, _ = jax.lax.fori_loop(0, iterations, step, (x0, jnp.asarray(1e-3), r0 @ r0))
+    start = (x0, r0, jnp.asarray(1e-3), r0 @ r0)
+    x = jax.lax.fori_loop(0, iterations, step, start)[0]
     return x * scale
 
 
