@@ -303,6 +303,9 @@ def line_and_points(
                  "dropped (colour JPEG pair, read in luma)")  # fmt: skip
     if len(out.stripe_uv) == 0 and out.stripe is not None:
         note("no laser line found on the board")
+    elif out.stripe is not None and out.stripe.speckle_px > 0:
+        note(f"speckled laser line: read after smoothing along it, its centres scatter "
+             f"{out.stripe.speckle_px:.2f} px about a straight line")  # fmt: skip
     if not shared:
         return out
     hit = moved if grey else off_local_grid(target, corners)

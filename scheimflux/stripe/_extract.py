@@ -90,6 +90,20 @@ FLAT_RANGE = (3.0, 5.0)
 _TRACK_TRIM = 3
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
+# A speckled line (`_speckle_bound`): the median |asymmetry| of its candidate centres
+# above which the whole line is asymmetric, not a few profiles over albedo edges (a
+# clean line, JPEG, shot noise, blur, hot pixels and checker edges under a laser-off
+# difference: medians 0.01-0.04); the autocorrelation of the signed asymmetry, a few
+# line widths apart along the line, below which it is random (speckle grains of a few
+# pixels) rather than a brightness step lying along the line; and the bound then
+# applied, in units of the asymmetry's spread (3 sigma of a half-normal |asymmetry|).
+# The speckle contrast (`_speckle_contrast`) above which the signal is smoothed along
+# the line over `SPECKLE_SMOOTH` line widths before the centres are read.
+SPECKLE_CONTRAST = 0.1
+SPECKLE_SMOOTH = 1.0
+SPECKLE_MEDIAN = 0.06
+SPECKLE_CORRELATION = 0.5
+SPECKLE_SIGMAS = 3.0
 
 
 def _slant(angle: float, orientation: str) -> float:
@@ -586,6 +600,92 @@ def _noise_along(
     return np.maximum(sigma, 0.3) if integer else sigma
 
 
+def _speckle_contrast(gather, coarse, rows: int, width: float) -> float:
+    """The laser speckle's contrast along a line (std / mean of its peak): grains of a
+    few pixels make the line's peak vary between scan lines a few widths apart more than
+    between neighbours, while pixel noise (shot and read) varies both alike and a smooth
+    line neither; so the robust spread of the peak's changes over `2 width` scan lines,
+    less that over one, over the median peak (albedo steps and glints: a few outliers
+    the medians ignore), on the scan lines whose peak reaches a quarter of the line's."""
+    cols = np.flatnonzero(coarse.support)
+    if cols.size < 32:
+        return 0.0
+    reach = max(int(math.ceil(width)), 2)
+    r = np.clip(np.rint(coarse.centre[cols]).astype(np.intp)[None, :]
+                + np.arange(-reach, reach + 1)[:, None], 0, rows - 1)  # fmt: skip
+    peak = gather(r, cols[None, :]).astype(np.float64).max(axis=0)
+    # the line's own scan lines (the coarse track also spans scan lines of noise)
+    on = peak >= 0.25 * float(np.quantile(peak, 0.95))
+    cols, peak = cols[on], peak[on]
+    level = float(np.median(peak))
+    lag = max(int(round(2.0 * width)), 4)
+    if not level > 0 or cols.size < 4 * lag:
+        return 0.0
+    spreads = []
+    for k in (1, lag):
+        j = np.searchsorted(cols, cols + k)
+        pair = j < cols.size
+        pair[pair] &= cols[j[pair]] == cols[pair] + k
+        if pair.sum() < 16:
+            return 0.0
+        spreads.append(1.4826 * float(np.median(np.abs(peak[j[pair]] - peak[pair]))))
+    return math.sqrt(max(spreads[1] ** 2 - spreads[0] ** 2, 0.0) / 2.0) / level
+
+
+def _along_line(img: np.ndarray, direction_deg: float, sigma: float) -> np.ndarray:
+    """`img` smoothed by a 1-D Gaussian of std `sigma` (px) along the direction
+    `direction_deg` (degrees from the u axis), as float32. A straight line keeps its
+    centre; a curved one moves towards its inside by about curvature x sigma² / 2."""
+    n = int(math.ceil(3.0 * sigma))
+    size = 2 * n + 1
+    t = np.linspace(-n, n, 8 * size)
+    c, s_ = math.cos(math.radians(direction_deg)), math.sin(math.radians(direction_deg))
+    x, y = n + t * c, n + t * s_
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    g = np.exp(-(t**2) / (2.0 * sigma**2))
+    kernel = np.zeros((size + 1, size + 1))
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):  # fmt: skip
+        np.add.at(kernel, (y0 + dy, x0 + dx), g * wgt)
+    kernel = kernel[:size, :size] / kernel[:size, :size].sum()
+    return cv2.filter2D(img.astype(np.float32), -1, kernel.astype(np.float32),
+                        borderType=cv2.BORDER_REFLECT)  # fmt: skip
+
+
+def _speckle_bound(asym: np.ndarray, candidate: np.ndarray, width: float) -> float:
+    """The asymmetry bound for a speckled line, 0 when the line is not speckled.
+
+    Laser speckle multiplies the line by grains about as wide as the line: nearly every
+    profile is asymmetric, each centre is off at random (zero mean along the line), and
+    the fixed bound `ASYMMETRY_MAX`, made for the few profiles a brightness step lies
+    under, refuses the whole line (measured on a 5 px line with grains of 1.5 px and a
+    contrast of 0.3-0.7: 0-30 % of its centres kept, no better than the refused ones).
+    A line is speckled when the median |asymmetry| of its `candidate` centres (every
+    test passed but the asymmetry's) exceeds `SPECKLE_MEDIAN` and the signed asymmetry
+    decorrelates along the line within `max(2 width, 6)` scan lines; its bound is then
+    `SPECKLE_SIGMAS` spreads of the asymmetry (1.4826 x its median absolute value)."""
+    idx = np.flatnonzero(candidate & np.isfinite(asym))
+    if idx.size < 32:
+        return 0.0
+    a = asym[idx]
+    med = float(np.median(np.abs(a)))
+    if med <= SPECKLE_MEDIAN:
+        return 0.0
+    lag = max(int(round(2.0 * width)), 6)
+    j = np.searchsorted(idx, idx + lag)
+    pair = j < idx.size
+    pair[pair] &= idx[j[pair]] == idx[pair] + lag
+    if pair.sum() < 16:
+        return 0.0
+    x, y = a[pair], a[j[pair]]
+    x, y = x - x.mean(), y - y.mean()
+    rho = float(np.sum(x * y) / max(math.sqrt(float(np.sum(x * x) * np.sum(y * y))), 1e-300))
+    if rho >= SPECKLE_CORRELATION:
+        return 0.0
+    return max(ASYMMETRY_MAX, SPECKLE_SIGMAS * 1.4826 * med)
+
+
 def _local_line(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """Prediction of `y` at each scan line from a straight line fitted to the scan
     lines within +- `half` where `w` (bool) holds, and how many there are (prefix sums;
@@ -690,9 +790,10 @@ def _extract_track(
             mask_small = np.ascontiguousarray(mask_small.T)
         stride_y, stride_x = 1, img.shape[1]
 
-    def gather(rows: np.ndarray, cols: np.ndarray, source=flat) -> np.ndarray:
-        """The scan-frame image at integer (row, column) index arrays (broadcast)."""
-        return np.take(source, rows * stride_y + cols * stride_x)
+    def gather(rows: np.ndarray, cols: np.ndarray, source=None) -> np.ndarray:
+        """The scan-frame image (`flat`, or `source`) at integer (row, column) index
+        arrays (broadcast)."""
+        return np.take(flat if source is None else source, rows * stride_y + cols * stride_x)
 
     retry = _Retry(img, noise, roi, width, asked, ranked) if track is None else None
     if track is None:
@@ -715,14 +816,26 @@ def _extract_track(
         local_noise = _noise_along(gather, coarse.centre, shape[0], width, integer)
     if not coarse.found:
         return _empty(shape[1], orientation, method, **extra), retry
+    speckle = 0.0
+    # (only with a laser-off image, whose albedo the signal is divided by: in a laser-on
+    # image alone a printed pattern modulates the line at the speckle's scale)
+    if method == "steger" and off_level is not None and normalise_background:
+        speckle = _speckle_contrast(gather, coarse, shape[0], width)
+        if speckle > SPECKLE_CONTRAST:
+            # a speckled line: the signal smoothed along the line, over several grains
+            img = _along_line(img, angle + 90.0, SPECKLE_SMOOTH * width)
+            flat = img.reshape(-1)
 
     sat_level = saturation
     if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
         sat_level = float(sat_img.max()) if top is None else top
 
+    candidate = [None]  # the last pass's centres before the asymmetry test
+
     def run(
-        w: float, source=img, asym_max=ASYMMETRY_MAX
+        w: float, source=img, asym_max=None
     ) -> tuple[ScanLines, np.ndarray, np.ndarray]:
+        asym_max = asym_bound if asym_max is None else asym_max
         if method == "centroid":
             flat_s = source.reshape(-1)
             lines = centroid_band(lambda r, c: gather(r, c, flat_s), shape, coarse.centre, w)
@@ -753,6 +866,7 @@ def _extract_track(
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
         valid &= (y >= -0.5) & (y <= shape[0] - 0.5)
         if lines.asym is not None:
+            candidate[0] = valid
             valid &= np.abs(lines.asym) <= asym_max  # (NaN: refused)
         return lines, valid, thr
 
@@ -774,6 +888,7 @@ def _extract_track(
             out |= np.count_nonzero(near >= sat_level, axis=0) >= 2
         return valid & out
 
+    asym_bound = ASYMMETRY_MAX
     lines, valid, thr = run(width)
     if width_px is None:
         # the width of the unclipped part of the line (a clipped core looks wider)
@@ -783,6 +898,12 @@ def _extract_track(
             if math.isfinite(measured) and abs(measured - width) > 0.3 * width:
                 width = min(max(measured, 1.5), 100.0)
                 lines, valid, thr = run(width)
+    if method == "steger" and lines.asym is not None and speckle > SPECKLE_CONTRAST:
+        # a speckled line: its asymmetric profiles are speckle, not brightness steps
+        bound = _speckle_bound(lines.asym, candidate[0], width)
+        if bound > asym_bound:
+            asym_bound = bound
+            lines, valid, thr = run(width)
 
     # Clipped scan lines. With a laser-off image every one on the track, accepted or
     # not: the first pass, at the unclipped line's width, refuses most of a wide flat
@@ -825,7 +946,7 @@ def _extract_track(
             # The strict tests: the asymmetry bound held at the shift in pixels it allows
             # a line of the default width (~0.25 px: the asymmetry of a given shift falls
             # as the profile widens), and the same albedo at both rims.
-            asym_max = ASYMMETRY_MAX * min(profile_std(_DEFAULT_WIDTH) / profile_std(wide), 1.0)
+            asym_max = asym_bound * min(profile_std(_DEFAULT_WIDTH) / profile_std(wide), 1.0)
             even = np.abs(np.nan_to_num(lines.asym, nan=np.inf)) <= asym_max
             if off_level is None:
                 # Without a laser-off image: the laser-on image 2 FWHM beyond the rims
@@ -1064,7 +1185,7 @@ def _extract_track(
     asym = lines.asym
     asym = np.zeros(shape[1]) if asym is None else np.where(np.isnan(asym), 1.0, asym)
     confidence = np.clip(lines.strength / (4.0 * thr), 0.0, 1.0) * np.clip(
-        1.0 - np.abs(asym) / ASYMMETRY_MAX, 0.0, 1.0
+        1.0 - np.abs(asym) / asym_bound, 0.0, 1.0
     )
     # centres of the step fit: at most 0.5 (a model fit, not a symmetric ridge), lower
     # as the centre's standard error approaches the accepted limit
@@ -1076,6 +1197,13 @@ def _extract_track(
     # centres read from the plateau's flanks (step 4b): 0.5, a model reading too
     if rim.any():
         confidence = np.where(rim, 0.5, confidence)
+    speckle_px = 0.0
+    if speckle > SPECKLE_CONTRAST and valid.sum() >= 8:
+        # the centres' scatter about a straight line through their neighbours
+        pred, count = _local_line(np.where(valid, y_fit, 0.0), valid, max(int(3 * width), 10))
+        near = valid & (count >= 6) & np.isfinite(pred)
+        if near.any():
+            speckle_px = 1.4826 * float(np.median(np.abs(y_fit[near] - pred[near])))
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),
@@ -1086,6 +1214,7 @@ def _extract_track(
         method=method,
         confidence=np.where(valid, confidence, 0.0),
         segment=segment,
+        speckle_px=speckle_px,
         **extra,
     ), (None if valid.any() or albedo_refused else retry)
 

@@ -49,6 +49,11 @@ class StripeResult:
     - `steep_left_out_px`, `steep_left_out_fraction`: the length (px along the line) and
       fraction of the line found by the other scan direction but not returned, because
       `orientation` was given (one centre per scan line asked for); 0 otherwise.
+    - `speckle_px`: where the line was found speckled (nearly every profile asymmetric,
+      at random along the line: laser speckle), the robust scatter (px, along the scan
+      lines) of its centres about a straight line through their neighbours; the
+      centres are then kept with a looser asymmetry bound and are each off by about
+      that much. 0 for a line that is not speckled.
     """
 
     uv: np.ndarray
@@ -66,6 +71,7 @@ class StripeResult:
     steep: np.ndarray | None = None
     steep_left_out_px: float = 0.0
     steep_left_out_fraction: float = 0.0
+    speckle_px: float = 0.0
 
     def __post_init__(self):
         n = self.uv.shape[0]
