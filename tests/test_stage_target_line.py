@@ -206,8 +206,9 @@ def test_cli_table_circle_diameter_measured_in_its_steps(grid_table, capsys):
     images.mkdir(exist_ok=True)
     for k in range(3):
         shutil.copy(on / f"step_{k}.png", images / f"view_{k}.png")
-    base = ["detect", str(images), "--target", "circles", "--board", "7x6", "--spacing-mm",
-            "0.2", "--stage-target", str(pair), "--delta-omega-deg", "5", "--overwrite"]  # fmt: skip
+    base = ["detect", str(images), "--target", "circles", "--board", "7x6",
+            "--spacing-mm", "0.2", "--stage-target", str(pair), "--delta-omega-deg", "5",
+            "--overwrite"]  # fmt: skip
     out = root / "cli_obs.json"
     assert main(base + ["--out", str(out)]) == 0, capsys.readouterr().err
     printed = capsys.readouterr().out

@@ -600,13 +600,15 @@ def _noise_along(
     return np.maximum(sigma, 0.3) if integer else sigma
 
 
-def _speckle_contrast(gather, coarse, rows: int, width: float) -> float:
+def _speckle_contrast(gather, coarse, rows: int, width: float, plain=None,
+                      sat_level: float | None = None) -> float:  # fmt: skip
     """The laser speckle's contrast along a line (std / mean of its peak): grains of a
     few pixels make the line's peak vary between scan lines a few widths apart more than
     between neighbours, while pixel noise (shot and read) varies both alike and a smooth
     line neither; so the robust spread of the peak's changes over `2 width` scan lines,
     less that over one, over the median peak (albedo steps and glints: a few outliers
-    the medians ignore), on the scan lines whose peak reaches a quarter of the line's."""
+    the medians ignore), on the unclipped scan lines whose peak reaches a quarter of
+    the line's."""
     cols = np.flatnonzero(coarse.support)
     if cols.size < 32:
         return 0.0
@@ -614,9 +616,15 @@ def _speckle_contrast(gather, coarse, rows: int, width: float) -> float:
     r = np.clip(np.rint(coarse.centre[cols]).astype(np.intp)[None, :]
                 + np.arange(-reach, reach + 1)[:, None], 0, rows - 1)  # fmt: skip
     peak = gather(r, cols[None, :]).astype(np.float64).max(axis=0)
-    # the line's own scan lines (the coarse track also spans scan lines of noise)
+    # the line's own scan lines (the coarse track also spans scan lines of noise), not
+    # clipped in the plain image (`plain`, at `sat_level`): a clipped core divided by
+    # the laser-off level follows the albedo, not the laser
     on = peak >= 0.25 * float(np.quantile(peak, 0.95))
+    if plain is not None:
+        on &= plain(r, cols[None, :]).max(axis=0) < sat_level
     cols, peak = cols[on], peak[on]
+    if cols.size < 32:
+        return 0.0
     level = float(np.median(peak))
     lag = max(int(round(2.0 * width)), 4)
     if not level > 0 or cols.size < 4 * lag:
@@ -816,19 +824,20 @@ def _extract_track(
         local_noise = _noise_along(gather, coarse.centre, shape[0], width, integer)
     if not coarse.found:
         return _empty(shape[1], orientation, method, **extra), retry
+    sat_level = saturation
+    if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
+        sat_level = float(sat_img.max()) if top is None else top
+
     speckle = 0.0
     # (only with a laser-off image, whose albedo the signal is divided by: in a laser-on
     # image alone a printed pattern modulates the line at the speckle's scale)
     if method == "steger" and off_level is not None and normalise_background:
-        speckle = _speckle_contrast(gather, coarse, shape[0], width)
+        plain = None if sat_level is None else functools.partial(gather, source=flat_sat)
+        speckle = _speckle_contrast(gather, coarse, shape[0], width, plain, sat_level)
         if speckle > SPECKLE_CONTRAST:
             # a speckled line: the signal smoothed along the line, over several grains
             img = _along_line(img, angle + 90.0, SPECKLE_SMOOTH * width)
             flat = img.reshape(-1)
-
-    sat_level = saturation
-    if sat_level is None and np.issubdtype(sat_img.dtype, np.integer):
-        sat_level = float(sat_img.max()) if top is None else top
 
     candidate = [None]  # the last pass's centres before the asymmetry test
 
