@@ -90,15 +90,14 @@ FLAT_RANGE = (3.0, 5.0)
 _TRACK_TRIM = 3
 # Hysteresis: a kept segment must reach this multiple of the acceptance threshold.
 _HIGH = 2.0
-# A speckled line (`_speckle_bound`): the median |asymmetry| of its candidate centres
-# above which the whole line is asymmetric, not a few profiles over albedo edges (a
-# clean line, JPEG, shot noise, blur, hot pixels and checker edges under a laser-off
-# difference: medians 0.01-0.04); the autocorrelation of the signed asymmetry, a few
-# line widths apart along the line, below which it is random (speckle grains of a few
-# pixels) rather than a brightness step lying along the line; and the bound then
-# applied, in units of the asymmetry's spread (3 sigma of a half-normal |asymmetry|).
-# The speckle contrast (`_speckle_contrast`) above which the signal is smoothed along
-# the line over `SPECKLE_SMOOTH` line widths before the centres are read.
+# A speckled line. The speckle contrast (`_speckle_contrast`, measured with a laser-off
+# image) above which the signal is smoothed along the line over `SPECKLE_SMOOTH` line
+# widths before the centres are read; then (`_speckle_bound`) the median |asymmetry|
+# of the candidate centres above which the whole line is asymmetric, and the
+# autocorrelation of the signed asymmetry, a few line widths apart along the line,
+# below which it is random (speckle grains) rather than a brightness step lying along
+# the line; the asymmetry bound is then `SPECKLE_SIGMAS` spreads of the asymmetry (3
+# sigma of a half-normal |asymmetry|). Measured contrasts: docs/stripe.md.
 SPECKLE_CONTRAST = 0.1
 SPECKLE_SMOOTH = 1.0
 SPECKLE_MEDIAN = 0.06
@@ -667,8 +666,9 @@ def _speckle_bound(asym: np.ndarray, candidate: np.ndarray, width: float) -> flo
     Laser speckle multiplies the line by grains about as wide as the line: nearly every
     profile is asymmetric, each centre is off at random (zero mean along the line), and
     the fixed bound `ASYMMETRY_MAX`, made for the few profiles a brightness step lies
-    under, refuses the whole line (measured on a 5 px line with grains of 1.5 px and a
-    contrast of 0.3-0.7: 0-30 % of its centres kept, no better than the refused ones).
+    under, refuses most of the line (measured on a 45-degree 5 px line, grains of
+    1.5-3 px, contrast 0.3-0.6: 0-60 % of its centres kept, their RMS error 10-20 %
+    below that of all of them).
     A line is speckled when the median |asymmetry| of its `candidate` centres (every
     test passed but the asymmetry's) exceeds `SPECKLE_MEDIAN` and the signed asymmetry
     decorrelates along the line within `max(2 width, 6)` scan lines; its bound is then
