@@ -357,7 +357,7 @@ def _nominal_tilt_checked(obs, camera, how: str, frozen: list[str]):
         message = f"{hint} (the solve from it stopped: {err})"
         if isinstance(err, NotConvergedError):
             raise NotConvergedError(message, err.fit) from None
-        raise RankDeficientError(message) from None
+        raise RankDeficientError(message, err.nulls) from None
 
 
 def _principal_point_null(err: RankDeficientError) -> bool:

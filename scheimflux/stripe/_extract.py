@@ -599,6 +599,15 @@ def _noise_along(
     return np.maximum(sigma, 0.3) if integer else sigma
 
 
+def _lag_pairs(idx: np.ndarray, lag: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions `(i, j)` in the sorted scan-line indices `idx` with
+    `idx[j] == idx[i] + lag`."""
+    j = np.searchsorted(idx, idx + lag)
+    pair = j < idx.size
+    pair[pair] &= idx[j[pair]] == idx[pair] + lag
+    return np.flatnonzero(pair), j[pair]
+
+
 def _speckle_contrast(gather, coarse, rows: int, width: float, plain=None,
                       sat_level: float | None = None) -> float:  # fmt: skip
     """The laser speckle's contrast along a line (std / mean of its peak): grains of a
@@ -630,12 +639,10 @@ def _speckle_contrast(gather, coarse, rows: int, width: float, plain=None,
         return 0.0
     spreads = []
     for k in (1, lag):
-        j = np.searchsorted(cols, cols + k)
-        pair = j < cols.size
-        pair[pair] &= cols[j[pair]] == cols[pair] + k
-        if pair.sum() < 16:
+        i, j = _lag_pairs(cols, k)
+        if i.size < 16:
             return 0.0
-        spreads.append(1.4826 * float(np.median(np.abs(peak[j[pair]] - peak[pair]))))
+        spreads.append(1.4826 * float(np.median(np.abs(peak[j] - peak[i]))))
     return math.sqrt(max(spreads[1] ** 2 - spreads[0] ** 2, 0.0) / 2.0) / level
 
 
@@ -681,12 +688,10 @@ def _speckle_bound(asym: np.ndarray, candidate: np.ndarray, width: float) -> flo
     if med <= SPECKLE_MEDIAN:
         return 0.0
     lag = max(int(round(2.0 * width)), 6)
-    j = np.searchsorted(idx, idx + lag)
-    pair = j < idx.size
-    pair[pair] &= idx[j[pair]] == idx[pair] + lag
-    if pair.sum() < 16:
+    i, j = _lag_pairs(idx, lag)
+    if i.size < 16:
         return 0.0
-    x, y = a[pair], a[j[pair]]
+    x, y = a[i], a[j]
     x, y = x - x.mean(), y - y.mean()
     rho = float(np.sum(x * y) / max(math.sqrt(float(np.sum(x * x) * np.sum(y * y))), 1e-300))
     if rho >= SPECKLE_CORRELATION:
