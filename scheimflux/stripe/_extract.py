@@ -483,7 +483,14 @@ def _extract_one(image: Any, **options: Any) -> StripeResult:
     """`extract_stripe` on one signal (laser-on image, or its laser-off difference);
     where the coarse track finds no line, the longest continuous narrow ridge
     (`_longridge.py`) is tried as the track instead (in each other colour candidate
-    first, for a colour image with `channel="auto"`)."""
+    first, for a colour image with `channel="auto"`).
+
+    Every pass here reads the same image pair, so its signal (per channel asked) is
+    computed once and shared (`signals`): the steep parts of a line and the long-ridge
+    retries each took a whole-frame pass again, the bilateral filters and gain fits
+    of a colour laser-off pair included (a 2448 x 2048 JPEG pair with a 45 degree
+    line: seven passes)."""
+    options = {**options, "signals": {}}
     result, retry = _extract_track(image, **options)
     if result.valid.any():
         return _with_steep(image, result, options)
@@ -754,6 +761,7 @@ def _extract_track(
     track: LongRidge | None = None,
     min_line: int | None = None,
     band: np.ndarray | None = None,
+    signals: dict | None = None,
 ) -> tuple[StripeResult, _Retry | None]:
     """`extract_stripe` on one signal, from the coarse track or, given `track` (a
     long-ridge path in the scan frame of `orientation`), from that path. Also returns
@@ -761,14 +769,23 @@ def _extract_track(
     `min_line`: scan lines the longest segment must span for the frame to hold a line
     (None: `_min_line`; the steep part of a line found already, `_steep.py`, needs only
     a segment's own minimum). `band`: (H, W) bool, where to look besides `mask` (the
-    signal, and a gain map fitted inside `mask`, stay those of the whole image)."""
+    signal, and a gain map fitted inside `mask`, stay those of the whole image).
+    `signals`: the signals of earlier passes over the same `image`, `background` and
+    `mask`, by channel asked (filled here; never written to)."""
     _check_options(method, width_px, orientation, band_px, min_strength, saturation, channel)
     _check_gain(background_gain)
     asked = orientation
     width = _DEFAULT_WIDTH if width_px is None else float(width_px)
-    img, sat_img, channel, unnormalised, off_level, off_signal, ranked = _signal(
-        image, background, channel, width, normalise_background, background_gain, mask
-    )
+    key = (channel, width, normalise_background, str(background_gain))
+    if signals is not None and key in signals:
+        computed = signals[key]
+    else:
+        computed = _signal(
+            image, background, channel, width, normalise_background, background_gain, mask
+        )
+        if signals is not None:
+            signals[key] = computed
+    img, sat_img, channel, unnormalised, off_level, off_signal, ranked = computed
     roi = as_mask(mask, img.shape)
     if band is not None:
         roi = band if roi is None else roi & band
