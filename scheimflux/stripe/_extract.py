@@ -897,7 +897,7 @@ def _extract_track(
         valid &= np.abs(y - coarse.centre) <= coarse.tolerance
         valid &= (y >= -0.5) & (y <= shape[0] - 0.5)
         if lines.asym is not None:
-            candidate[0] = valid
+            candidate[0] = valid.copy()  # (the test below narrows `valid` in place)
             valid &= np.abs(lines.asym) <= asym_max  # (NaN: refused)
         return lines, valid, thr
 
