@@ -39,6 +39,10 @@ from ._solve import NotConvergedError, RankDeficientError, least_squares
 from ._stage import _gauge_rms, calibrate_stage
 from ._stage_table import stage_extra_freeze, table_target_start
 
+# The stripe centres' noise assumed by default (px): a clean line's (`detect` reports a
+# speckled line's own scatter, which is several times this).
+SIGMA_STRIPE_PX = 0.05
+
 
 def calibrate(
     obs: Observations,
@@ -49,7 +53,7 @@ def calibrate(
     joint: bool = True,
     freeze: Sequence[str] | None = None,
     sigma_corner_px: float = 0.03,
-    sigma_stripe_px: float = 0.05,
+    sigma_stripe_px: float = SIGMA_STRIPE_PX,
     robust: float | None = None,
     reject: float | None = REJECT_SIGMA,
     max_steps: int = 300,

@@ -62,6 +62,9 @@ class CaptureReport:
       image) to the one its line was read from ([`BoardMotion`][]; `checked` False: it
       could not be measured, `why` says why). A view whose board moved more than
       `MOVED_PX` has its stripe refused.
+    - `speckle_px`: per view number whose laser line was read as speckled (with a
+      laser-off image), its centres' scatter about a straight line (px,
+      `StripeResult.speckle_px`; [`speckle_summary`][] the advice for `calibrate`).
     """
 
     kept: list[int] = dataclasses.field(default_factory=list)
@@ -70,6 +73,7 @@ class CaptureReport:
     ignored: list[str] = dataclasses.field(default_factory=list)
     previews: list[str] = dataclasses.field(default_factory=list)
     motion: dict[int, BoardMotion] = dataclasses.field(default_factory=dict)
+    speckle_px: dict[int, float] = dataclasses.field(default_factory=dict)
     circle_diameters_mm: list[float] = dataclasses.field(default_factory=list)
     table_circle_diameters_mm: list[float] = dataclasses.field(default_factory=list)
 
@@ -100,6 +104,27 @@ class CaptureReport:
             parts.append(f"UNCHECKED in view(s) {_views(unchecked)} (the laser-on image shows "
                          "the board too faintly: keep the room light on)")  # fmt: skip
         return "board motion between a view's laser-off and laser-on images: " + "; ".join(parts)
+
+    def speckle_summary(self) -> str:
+        """One line on the views whose laser line was speckled ("" when none was): their
+        centres' scatter against the stripe noise `calibrate` assumes by default."""
+        if not self.speckle_px:
+            return ""
+        from ..calibrate._calibrate import SIGMA_STRIPE_PX
+
+        px = sorted(self.speckle_px.values())
+        med = float(np.median(px))
+        line = (
+            f"speckled laser line in {len(px)} view(s): its centres scatter "
+            f"{px[0]:.2f}-{px[-1]:.2f} px (median {med:.2f}) about a straight line"
+        )
+        if med <= SIGMA_STRIPE_PX:
+            return line
+        return (
+            f"{line}, more than the {SIGMA_STRIPE_PX} px stripe noise calibrate assumes: "
+            f"give calibrate --sigma-stripe-px {med:.2f} (else its stripe gate may refuse "
+            "the calibration and its stripe weights and sigmas are too optimistic)"
+        )
 
 
 def _views(ks: list[int]) -> str:
@@ -229,6 +254,8 @@ def detect_captures(
                                margin_px=margin_px, min_points=min_points,
                                note=lambda text, cv=cv: note(cv, text))  # fmt: skip
         corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
+        if stripe_res is not None and stripe_res.speckle_px > 0 and len(stripe_uv):
+            report.speckle_px[cv.view] = float(stripe_res.speckle_px)
         # Did the board move between the exposures whose target points and laser line
         # are joined? A pair: its board image and stripe image; a single image with a
         # laser-off image: the target is found in the laser-off one.

@@ -118,7 +118,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--sigma-stripe-px",
         type=float,
-        default=0.05,
+        default=0.05,  # calibrate._calibrate.SIGMA_STRIPE_PX (not imported: it loads JAX)
         help="stripe-centre noise, weights the stripe and gauge points (default: %(default)s)",
     )
     p.add_argument(

@@ -302,6 +302,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dropped {len(report.dropped)} view(s): {_by_reason(report.dropped, 'view')}")
     if report.motion_summary():
         print(report.motion_summary())
+    if report.speckle_summary():
+        print(report.speckle_summary())
     if obs.stage_target is not None and obs.stage_target.dropped:
         dropped = obs.stage_target.dropped
         print(f"dropped {len(dropped)} table step(s): {_by_reason(dropped, 'step')}")
