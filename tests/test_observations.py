@@ -118,3 +118,21 @@ def test_board_motion_round_trip_and_validation(tmp_path):
         path.write_text(json.dumps(doc))
         with pytest.raises(ValueError, match=r"views\[0\].board_motion_px must be a number"):
             read_observations(path)
+
+
+def test_stripe_sigma_round_trip_and_validation(tmp_path):
+    # a view's own stripe noise (detect writes a speckled line's scatter) or absent
+    obs = _obs()
+    v = obs.views[0]
+    obs.views[:] = [View(v.corners_px, v.stripe_px, stripe_sigma_px=s) for s in (0.31, None)]
+    path = tmp_path / "obs.json"
+    write_observations(path, obs)
+    doc = json.loads(path.read_text())
+    assert doc["views"][0]["stripe_sigma_px"] == 0.31 and "stripe_sigma_px" not in doc["views"][1]
+    back = read_observations(path)
+    assert [w.stripe_sigma_px for w in back.views] == [0.31, None]
+    for bad in (0, -0.2, "0.3", True, None, float("inf")):
+        doc["views"][0]["stripe_sigma_px"] = bad
+        path.write_text(json.dumps(doc).replace("Infinity", "1e999"))
+        with pytest.raises(ValueError, match=r"views\[0\].stripe_sigma_px must be a number"):
+            read_observations(path)

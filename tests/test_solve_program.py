@@ -171,17 +171,18 @@ def test_joint_residuals_back_project_once():
         gauge_radius=jnp.asarray(17.5),
         sigma_corner_px=jnp.asarray(0.03),
         sigma_stripe_mm=jnp.asarray(1e-3),
+        stripe_scale=jnp.asarray([1.0, 2.5, 1.0]),  # view 1: its own (speckled) sigma
     )
     jaxpr = jax.make_jaxpr(joint_residuals)(params, data).jaxpr
     assert _count(jaxpr, "scan") == 1  # the undistortion's fixed point, once
 
     def stripe_blockwise(p, d):  # the definition: each view's pixels on their own
-        def one_view(pose, uv, w):
+        def one_view(pose, uv, w, scale):
             X = _laser_points_safe(p.camera, p.plane, uv)
             n_b = pose.R[:, 2]
-            return (X @ n_b - jnp.dot(n_b, pose.translation)) * w
+            return (X @ n_b - jnp.dot(n_b, pose.translation)) * w / (scale * d.sigma_stripe_mm)
 
-        return (jax.vmap(one_view)(p.board_poses, d.stripe, d.stripe_w) / d.sigma_stripe_mm).ravel()
+        return jax.vmap(one_view)(p.board_poses, d.stripe, d.stripe_w, d.stripe_scale).ravel()
 
     r = np.asarray(jax.jit(joint_residuals)(params, data))
     blocks = (corner_residuals, stripe_blockwise, gauge_residuals)

@@ -930,8 +930,10 @@ def test_speckled_line_with_laser_off_image(contrast):
     alone = extract_stripe(on, width_px=5)
     err_a, both_a, _ = errors(alone, truth)
     assert both_a.sum() < both.sum() and np.sqrt(np.mean(err_a**2)) > rms
-    # the reported scatter about a local straight line: within 2x of the true one
-    assert 0.5 * rms <= res.speckle_px <= 2 * rms
+    # the reported scatter across the line about a local parabola: within 1.5x of the
+    # true one (a robust scatter of ~800 centres correlated over tens of scan lines by
+    # the smoothing: ~+-15 %; measured 0.88 and 0.92 of it)
+    assert rms / 1.5 <= res.speckle_px <= 1.5 * rms
     # the same line without speckle is not called speckled, and is read as before
     on0, off0, _ = _speckled_pair(0.0, seed=11)
     res0 = extract_stripe(on0, background=off0, width_px=5)
@@ -972,4 +974,25 @@ def test_speckled_line_across_a_board_keeps_its_asymmetric_profiles():
     assert score.rms <= 0.6  # measured 0.518
     # errors correlated over ~2 grain widths: standard error of the mean rms / sqrt(n / 3)
     assert abs(score.bias) <= 4 * score.rms / np.sqrt(score.n / 3)
-    assert 0.5 * score.rms <= res.speckle_px <= 2 * score.rms
+    # the reported scatter: within 1.5x of the true one across the line (measured 1.16;
+    # 0.89-1.16 over seeds 3-6)
+    assert score.rms / 1.5 <= res.speckle_px <= 1.5 * score.rms
+
+
+def test_local_parabola_is_a_windowed_least_squares_parabola():
+    # against numpy's polyfit over each window: the offset across the curve (along the
+    # scan line times cos of the parabola's slope) and the window's count
+    from scheimflux.stripe._extract import _local_parabola
+
+    rng = np.random.default_rng(0)
+    x = np.arange(300.0)
+    y = 200.0 + 0.7 * x - 3e-4 * x**2 + rng.normal(0.0, 0.3, x.size)
+    w = rng.random(x.size) > 0.3
+    across, count = _local_parabola(np.where(w, y, 0.0), w, 40)
+    assert np.all(np.isnan(across[~w])) and np.all(count[~w] == 0)
+    for i in np.flatnonzero(w)[::7]:
+        sel = w & (np.abs(x - i) <= 40)
+        p = np.polyfit(x[sel], y[sel], 2)
+        ref = (y[i] - np.polyval(p, i)) / np.hypot(1.0, np.polyval(np.polyder(p), i))
+        assert count[i] == sel.sum()
+        assert abs(across[i] - ref) < 1e-8

@@ -24,7 +24,13 @@ from ._camera import (
 from ._gates import REJECT_SIGMA, screen_field, screen_observations
 from ._gauge import profile_notes
 from ._init import nominal_thick_lens
-from ._model import SystemParams, camera_plane_residuals, joint_residuals, make_data
+from ._model import (
+    SystemParams,
+    camera_plane_residuals,
+    joint_residuals,
+    make_data,
+    view_stripe_scale,
+)
 from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
 from ._quality import _gated, _hint_text
 from ._rejection import (
@@ -101,8 +107,11 @@ def calibrate(
       "camera.f")`, `"stage.R_m_c"`, `"eccentricity"`; None: `DEFAULT_FREEZE`. A given
       list replaces the defaults; Δω of the stage is always held.
     - `sigma_corner_px`: the corners' noise σ (px per coordinate).
-    - `sigma_stripe_px`: the stripe centres' noise σ (px), converted to mm at the
-      camera's pixel footprint on the boards for the stripe and gauge residuals.
+    - `sigma_stripe_px`: the stripe centres' noise σ (px, across the line), converted
+      to mm at the camera's pixel footprint on the boards for the stripe and gauge
+      residuals. A view whose own measured σ is larger (`View.stripe_sigma_px`: `detect`
+      measures a speckled line's scatter) has its stripe points weighted by that σ, and
+      the stripe gate compares with the RMS of the σ used.
     - `robust`: Huber threshold (units of σ) on every residual; None: off (see above).
     - `reject`: the rejection pass's threshold (robust σ); None: no rejection pass.
     - `max_steps`: Levenberg–Marquardt steps per solve.
@@ -167,7 +176,9 @@ def calibrate(
         return _gated(cal, {**outside, **rejected}, None, throw, notes, _tilt_hint(obs, cam_cal))
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
-    plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm)
+    scale = view_stripe_scale(obs, sigma_stripe_px)
+    notes += _own_sigma_note(scale, sigma_stripe_px)
+    plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm * scale)
     fits = {"camera": cam_cal.fit}
     stage = ecc = None
     if obs.stage is not None:
@@ -186,7 +197,13 @@ def calibrate(
     if obs.stage_target is not None:  # a target on the table (`_stage_table`)
         stage, ecc, table_pose = table_target_start(cam_cal.camera, obs, stage, ecc)
     params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc, table_pose)
-    data = make_data(obs, sigma_corner_px=sigma_corner_px, sigma_stripe_mm=sigma_mm, robust=robust)
+    data = make_data(
+        obs,
+        sigma_corner_px=sigma_corner_px,
+        sigma_stripe_mm=sigma_mm,
+        stripe_scale=scale,
+        robust=robust,
+    )
     freeze = cam_cal.freeze
     start = params
     hint = None if stage is None else _gauge_start_hint(params, data, obs)
@@ -321,6 +338,21 @@ def board_scale_note(obs: Observations, poses) -> tuple[str, ...]:
         f"mm where a lens of f = {f:g} mm images at |beta| = {beta:g} (the nominal values): "
         "check the board's square size (detect --square-mm: it sets the scale of every "
         "calibrated length) and the nominal focal length and magnification",
+    )
+
+
+def _own_sigma_note(scale: np.ndarray, sigma_stripe_px: float) -> tuple[str, ...]:
+    """A note naming the views whose stripe points are weighted by their own measured
+    σ (`View.stripe_sigma_px`, above the stated `sigma_stripe_px`)."""
+    own = np.flatnonzero(scale > 1.0)
+    if not len(own):
+        return ()
+    px = scale[own] * sigma_stripe_px
+    views = ", ".join(str(int(i)) for i in own[:8]) + (" ..." if len(own) > 8 else "")
+    return (
+        f"the stripe points of view(s) {views} are weighted by their own measured σ "
+        f"({px.min():.2f}-{px.max():.2f} px across the line: a speckled laser line, "
+        f"stripe_sigma_px in the observations) instead of {sigma_stripe_px:g} px",
     )
 
 

@@ -149,6 +149,24 @@ def _sigma_stripe_mm(diag: dict, params, obs) -> float:
     return float(px) * pixel_footprint_mm(params.camera, params.board_poses, obs)
 
 
+def _stripe_scale(diag: dict, n_views: int) -> np.ndarray | None:
+    """Each view's stripe σ in units of `sigma_stripe_mm` as the solve used it (views
+    weighted by their own measured σ); None: 1 for every view (absent: older files)."""
+    s = diag.get("stripe_sigma_scale")
+    if s is None:
+        return None
+    ok = isinstance(s, list) and len(s) == n_views
+    ok = ok and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < math.inf for x in s
+    )
+    if not ok:
+        raise CalibrationFileError(
+            f"diagnostics.stripe_sigma_scale must hold one positive number per view "
+            f"({n_views}), got {s!r}"
+        )
+    return np.asarray(s, dtype=np.float64)
+
+
 def _field_radius(diag: dict) -> float | None:
     """The field radius the calibration was made inside (`calibrate(max_radius_px=)`);
     None: the whole sensor."""
@@ -199,6 +217,7 @@ def restore_calibration(
             observations,
             sigma_corner_px=float(diag.get("sigma_corner_px", 0.03)),
             sigma_stripe_mm=_sigma_stripe_mm(diag, params, observations),
+            stripe_scale=_stripe_scale(diag, len(observations.views)),
             robust=robust,
         )
         if isinstance(diag.get("left_out"), dict):

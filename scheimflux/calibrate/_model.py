@@ -55,6 +55,9 @@ class CalibrationData(eqx.Module):
     gauge_radius: Float[Array, ""]
     sigma_corner_px: Float[Array, ""]
     sigma_stripe_mm: Float[Array, ""]
+    # per view: its stripe points' σ in units of `sigma_stripe_mm` (>= 1; above 1 where
+    # the view's own measured scatter is larger, `view_stripe_scale`)
+    stripe_scale: Float[Array, " V"]
     robust: float | None = eqx.field(static=True, default=None)
     table: TableTargetData | None = None  # a target fixed to the rotary table
     # circle targets: the outline's vertices about each board point (board frame, mm);
@@ -88,14 +91,30 @@ def _pad(sets: list[np.ndarray], fill: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return out, w
 
 
+def view_stripe_scale(obs, sigma_stripe_px: float) -> np.ndarray:
+    """Per view, its stripe points' σ in units of the stated `sigma_stripe_px`: the
+    view's own measured scatter (`View.stripe_sigma_px`, a speckled line's, written by
+    `detect`) over the stated σ where it is larger, else 1 (the stated σ is a floor:
+    a view measured cleaner than it is not trusted beyond it)."""
+    out = np.ones(len(obs.views))
+    for i, v in enumerate(obs.views):
+        own = getattr(v, "stripe_sigma_px", None)
+        if own is not None and own > sigma_stripe_px:
+            out[i] = float(own) / float(sigma_stripe_px)
+    return out
+
+
 def make_data(
     obs,
     *,
     sigma_corner_px: float = 0.03,
     sigma_stripe_mm: float = 1e-3,
+    stripe_scale=None,
     robust: float | None = None,
 ) -> CalibrationData:
-    """Arrays for the residual functions from an `Observations` record."""
+    """Arrays for the residual functions from an `Observations` record; `stripe_scale`
+    `(V,)`: each view's stripe σ in units of `sigma_stripe_mm` ([`view_stripe_scale`][];
+    None: 1 for every view)."""
     centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
     corners, mask = obs.corners()
     corners = np.where(mask[..., None], corners, centre)
@@ -125,12 +144,24 @@ def make_data(
         gauge_radius=put(radius),
         sigma_corner_px=put(sigma_corner_px),
         sigma_stripe_mm=put(sigma_stripe_mm),
+        stripe_scale=put(_stripe_scale(stripe_scale, len(obs.views))),
         robust=robust,
         table=None if obs.stage_target is None else table_target_data(obs.stage_target, centre),
         circle_ring=None
         if obs.circle_diameter_mm is None
         else put(circle_ring(obs.circle_diameter_mm)),
     )
+
+
+def _stripe_scale(scale, n_views: int) -> np.ndarray:
+    if scale is None:
+        return np.ones(n_views)
+    scale = np.asarray(scale, dtype=np.float64).reshape(-1)
+    if scale.shape != (n_views,) or not np.all(np.isfinite(scale) & (scale > 0)):
+        raise ValueError(
+            f"stripe_scale must hold one positive factor per view ({n_views}), got {scale}"
+        )
+    return scale
 
 
 CIRCLE_VERTICES = 16
@@ -247,12 +278,12 @@ def stripe_point_residuals(poses, X, w, data: CalibrationData) -> Float[Array, "
     """[`stripe_residuals`][] from the stripe pixels' laser-plane points `X` `(V, K, 3)`
     (camera frame), with weights `w` `(V, K)`."""
 
-    def one_view(pose, X, w):
+    def one_view(pose, X, w, scale):
         n_b = pose.R[:, 2]  # board normal in the camera frame
         d = X @ n_b - jnp.dot(n_b, pose.translation)
-        return d * w
+        return d * (w / scale)
 
-    r = jax.vmap(one_view)(poses, X, w)
+    r = jax.vmap(one_view)(poses, X, w, data.stripe_scale)
     return _robustify(r.reshape(-1) / data.sigma_stripe_mm, data.robust)
 
 

@@ -74,12 +74,20 @@ def board_stripe_points(camera, poses: Pose, obs: Observations) -> np.ndarray:
     return np.asarray(X)[: len(uv)]
 
 
-def fit_plane_tls(points: np.ndarray) -> LaserPlane:
-    """Total-least-squares plane through 3-D points (SVD of the centred points)."""
+def fit_plane_tls(points: np.ndarray, weights: np.ndarray | None = None) -> LaserPlane:
+    """Total-least-squares plane through 3-D points (SVD of the centred points; with
+    `weights` `(N,)`, of the points about their weighted centroid, each row scaled by
+    √w: the plane minimising Σ w d²)."""
     points = np.asarray(points, dtype=np.float64)
     if len(points) < 3:
         raise ValueError(f"a plane needs at least 3 points, got {len(points)}")
-    c, normal, s = fit_plane_svd(points)
+    if weights is None:
+        c, normal, s = fit_plane_svd(points)
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        c = (w[:, None] * points).sum(axis=0) / w.sum()
+        _, s, Vt = np.linalg.svd(np.sqrt(w / w.mean())[:, None] * (points - c), full_matrices=False)
+        normal = Vt[2]
     if s[1] < 1e-9 * max(s[0], 1e-300):
         raise ValueError(
             "stripe points are collinear: the laser plane is not determined "
@@ -100,38 +108,59 @@ def _stripe_views(obs: Observations) -> np.ndarray:
     return np.concatenate(idx) if idx else np.zeros(0, int)
 
 
-def fit_laser_plane(
-    camera, poses: Pose, obs: Observations, *, sigma_mm: float | None = None
-) -> PlaneFit:
+def fit_laser_plane(camera, poses: Pose, obs: Observations, *, sigma_mm=None) -> PlaneFit:
     """Paper §2.4 step 3: stripe points on the calibrated boards → TLS plane.
 
     With the stripe points' noise `sigma_mm`, the plane's conditioning is checked first
     (`_gates.plane_conditioning`): stripes on fewer than 2 board poses, or on poses whose
     lines are collinear, raise `ValueError` instead of returning an undetermined plane.
+    Given per view (`(V,)`: views of unequal noise, e.g. speckled lines), each view's
+    points are weighted by 1/σ² in the plane fit and the conditioning uses their RMS σ.
 
     **Arguments:**
     - `camera`: the calibrated camera (e.g. `calibrate_camera(obs).camera`).
     - `poses`: the board poses `T_c_b` of the views, batched `(V,)` (its `.poses`).
     - `obs`: the observations whose views' `stripe_px` lie on the boards.
-    - `sigma_mm`: the stripe points' noise (mm); None: no conditioning check.
+    - `sigma_mm`: the stripe points' noise (mm), one for all or `(V,)` per view; None:
+      no conditioning check, every point weighted alike.
 
     **Returns:** a [`PlaneFit`][]: the plane, the stripe points `(N, 3)` (camera frame,
     mm), their signed distances from the plane (mm) and the conditioning (None without
     `sigma_mm`).
     """
     pts = board_stripe_points(camera, poses, obs)
-    cond = None
+    cond, weights = None, None
     if sigma_mm is not None:
-        cond = plane_conditioning(pts, _stripe_views(obs), sigma_mm)
-    plane = fit_plane_tls(pts)
+        view = _stripe_views(obs)
+        sigma = np.broadcast_to(np.asarray(sigma_mm, dtype=np.float64), (len(obs.views),))
+        point_sigma = sigma[view]
+        rms = float(np.sqrt(np.mean(point_sigma**2))) if len(view) else float(sigma.max())
+        cond = plane_conditioning(pts, view, rms)
+        if np.ptp(sigma) > 0:
+            weights = 1.0 / point_sigma**2
+    plane = fit_plane_tls(pts, weights)
     res = np.asarray(plane.signed_distance(jnp.asarray(pts)))
     return PlaneFit(plane, pts, res, cond)
 
 
 def _plane_rms(params, data) -> float:
-    r = np.asarray(_laser_residuals_jit(params, data)[0]) * float(data.sigma_stripe_mm)
-    n = float(np.sum(np.asarray(data.stripe_w)))
+    """RMS (mm) of the board stripe points' distances from their boards (each view's
+    residuals back from units of its own σ)."""
+    w = np.asarray(data.stripe_w)
+    r = np.asarray(_laser_residuals_jit(params, data)[0]).reshape(w.shape)
+    r = r * float(data.sigma_stripe_mm) * np.asarray(data.stripe_scale)[:, None]
+    n = float(np.sum(w))
     return float(np.sqrt(np.sum(r**2) / max(n, 1.0)))
+
+
+def stripe_sigma_rms_mm(data) -> float:
+    """The RMS of the board stripe points' σ (mm; each view's own, `data.stripe_scale`):
+    what `_plane_rms` is for noise of exactly those σ."""
+    w = np.asarray(data.stripe_w) > 0
+    n = w.sum(axis=1)
+    scale2 = np.asarray(data.stripe_scale) ** 2
+    mean2 = float(np.sum(n * scale2) / n.sum()) if n.sum() else 1.0
+    return float(data.sigma_stripe_mm) * float(np.sqrt(mean2))
 
 
 def _has_board_stripes(obs: Observations) -> bool:

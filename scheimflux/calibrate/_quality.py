@@ -21,6 +21,7 @@ from ._gates import (
     sensor_side_gate,
     tails_gate,
 )
+from ._plane import stripe_sigma_rms_mm
 from ._rejection import _block_residuals
 from ._result import Calibration
 from ._stage_warning import axis_warning, calibration_axis_conditioning
@@ -164,7 +165,7 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
             rms_gate(
                 "stripe",
                 cal.plane_rms_mm,
-                sigma_s,
+                stripe_sigma_rms_mm(data),
                 "mm",
                 "the board stripe points do not lie on one laser plane (stripes from the "
                 "wrong views, reflections, or a wrong --sigma-stripe-px)",

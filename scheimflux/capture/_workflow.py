@@ -63,8 +63,9 @@ class CaptureReport:
       could not be measured, `why` says why). A view whose board moved more than
       `MOVED_PX` has its stripe refused.
     - `speckle_px`: per view number whose laser line was read as speckled (with a
-      laser-off image), its centres' scatter about a straight line (px,
-      `StripeResult.speckle_px`; [`speckle_summary`][] the advice for `calibrate`).
+      laser-off image), its centres' scatter across the line (px,
+      `StripeResult.speckle_px`), written as the view's `stripe_sigma_px` in the
+      observations ([`speckle_summary`][] says so).
     """
 
     kept: list[int] = dataclasses.field(default_factory=list)
@@ -107,7 +108,8 @@ class CaptureReport:
 
     def speckle_summary(self) -> str:
         """One line on the views whose laser line was speckled ("" when none was): their
-        centres' scatter against the stripe noise `calibrate` assumes by default."""
+        centres' scatter against the stripe noise `calibrate` assumes by default, and
+        that `calibrate` weights those views by their own."""
         if not self.speckle_px:
             return ""
         from ..calibrate._calibrate import SIGMA_STRIPE_PX
@@ -116,14 +118,13 @@ class CaptureReport:
         med = float(np.median(px))
         line = (
             f"speckled laser line in {len(px)} view(s): its centres scatter "
-            f"{px[0]:.2f}-{px[-1]:.2f} px (median {med:.2f}) about a straight line"
+            f"{px[0]:.2f}-{px[-1]:.2f} px (median {med:.2f}) across the line"
         )
-        if med <= SIGMA_STRIPE_PX:
+        if px[-1] <= SIGMA_STRIPE_PX:
             return line
         return (
-            f"{line}, more than the {SIGMA_STRIPE_PX} px stripe noise calibrate assumes: "
-            f"give calibrate --sigma-stripe-px {med:.2f} (else its stripe gate may refuse "
-            "the calibration and its stripe weights and sigmas are too optimistic)"
+            f"{line}, more than the {SIGMA_STRIPE_PX} px of a clean line: written as each "
+            "view's stripe_sigma_px, by which calibrate weights that view's stripe points"
         )
 
 
@@ -295,7 +296,11 @@ def detect_captures(
                 _preview(preview_dir, cv, simg if simg is not None else image, corners,
                          line.hull, stripe_res, line.mask, "")
             )  # fmt: skip
-        views.append(View(corners, stripe_uv, cv.names, motion_px))
+        # a speckled line's own scatter, kept for calibrate's weights and gates
+        sigma = None
+        if stripe_res is not None and stripe_res.speckle_px > 0 and len(stripe_uv):
+            sigma = float(stripe_res.speckle_px)
+        views.append(View(corners, stripe_uv, cv.names, motion_px, sigma))
         report.kept.append(cv.view)
         report.circle_diameters_mm.extend(dots)
 

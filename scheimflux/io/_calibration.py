@@ -22,6 +22,7 @@
                  "solves": {"camera": {"steps": 12, "converged": true, "time_s": 3.1}, ...},
                  "frozen": ["camera.dx", ...], "converged": true,
                  "sigma_corner_px": 0.03, "sigma_stripe_mm": 1.4e-4, "robust": null,
+                 "stripe_sigma_scale": [1.0, 4.2, ...],             # optional
                  "field_radius_px": 900.0, ...},                    # optional
  "software": {"name": "scheimflux", "version": "0.1.0"}}
 ```
@@ -249,6 +250,9 @@ def _weights(cal) -> dict:
         "sigma_stripe_mm": float(data.sigma_stripe_mm),
         "robust": data.robust,
     }
+    scale = np.asarray(data.stripe_scale)
+    if np.any(scale != 1.0):  # views weighted by their own measured stripe σ
+        out["stripe_sigma_scale"] = [float(x) for x in scale]
     quality = getattr(cal, "quality", None)
     radius = getattr(quality, "rejected", {}).get("field_radius_px")
     if radius is not None:  # calibrated inside this radius; re-applied on reading

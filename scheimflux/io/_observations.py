@@ -8,7 +8,8 @@
  "circle_diameter_mm": 0.15,                                                     # optional
  "views": [{"corners_px": [[u, v] or null, ...], "stripe_px": [[u, v], ...],
             "source": ["view_0_board.png", "view_0_stripe.png"],              # optional
-            "board_motion_px": 0.012}, ...],                                   # optional
+            "board_motion_px": 0.012,                                          # optional
+            "stripe_sigma_px": 0.21}, ...],                                    # optional
  "dropped_views": [{"view": 3, "images": ["view_3.jpg"],                           # optional
                     "reason": "no 11x8 checkerboard found ..."}, ...],
  "stage": {"delta_omega_deg": 10, "gauge_radius_mm": 17.5,                        # optional
@@ -35,11 +36,15 @@ unreadable, ...) with the capture's view number, its image names and the reason.
 `board_motion_px` is the board's motion measured between a view's laser-off image (a
 pair's board image, or `view_<k>_off`) and its laser-on image (px; null: it could not be
 measured, the laser-on image showing the board too faintly; absent: no laser-off image,
-or not measured). `stage_target` holds a target fixed to the rotary table, imaged at table steps
-`table_step` (angle `table_step · delta_omega_deg`; steps strictly increasing, a step
-whose image showed no target is listed in its `dropped_views` and keeps its number); its
-`board_points_mm` may be another target than the calibration boards' (its own
-`circle_diameter_mm` for a circle grid). Files without
+or not measured). `stripe_sigma_px` is the noise σ (px) of the view's stripe centres
+across the line, where it was measured (a speckled laser line, whose centres scatter
+several times a clean line's: `detect` writes it); `calibrate` weights the view's
+stripe points by the larger of it and its `sigma_stripe_px`. Absent: not measured (the
+stated `sigma_stripe_px` applies). `stage_target` holds a target fixed to the rotary
+table, imaged at table steps `table_step` (angle `table_step · delta_omega_deg`; steps
+strictly increasing, a step whose image showed no target is listed in its
+`dropped_views` and keeps its number); its `board_points_mm` may be another target than
+the calibration boards' (its own `circle_diameter_mm` for a circle grid). Files without
 these keys (older files) read as before.
 """
 
@@ -64,7 +69,7 @@ TOP_KEYS = (
 )  # fmt: skip
 SENSOR_KEYS = ("width", "height", "pixel_pitch_mm")
 NOMINAL_KEYS = ("focal_length_mm", "magnification", "tilt_deg")
-VIEW_KEYS = ("corners_px", "stripe_px", "source", "board_motion_px")
+VIEW_KEYS = ("corners_px", "stripe_px", "source", "board_motion_px", "stripe_sigma_px")
 DROPPED_KEYS = ("view", "images", "reason")
 STAGE_KEYS = ("delta_omega_deg", "gauge_radius_mm", "frames")
 STAGE_TARGET_KEYS = (
@@ -93,6 +98,9 @@ class View:
     # the board's motion between the view's laser-off and laser-on images (px); NaN: it
     # could not be measured; None: no laser-off image (or not measured)
     board_motion_px: float | None = None
+    # the stripe centres' noise σ across the line (px) as measured in the images (a
+    # speckled line); None: not measured
+    stripe_sigma_px: float | None = None
 
     @property
     def corner_mask(self) -> np.ndarray:
@@ -310,7 +318,8 @@ def parse_observations(doc) -> Observations:
             )
         stripe = _points(vd.get("stripe_px", []), f"views[{i}].stripe_px", 2)
         names = _names(vd.get("source", []), f"views[{i}].source")
-        views.append(View(corners, stripe, names, _motion(vd, f"views[{i}]")))
+        where = f"views[{i}]"
+        views.append(View(corners, stripe, names, _motion(vd, where), _stripe_sigma(vd, where)))
 
     dropped = []
     dropped_doc = doc.get("dropped_views", [])
@@ -434,6 +443,18 @@ def _motion(vd: dict, where: str) -> float | None:
     return float(m)
 
 
+def _stripe_sigma(vd: dict, where: str) -> float | None:
+    """A view's `stripe_sigma_px`: a number > 0, or absent (None)."""
+    if "stripe_sigma_px" not in vd:
+        return None
+    s = vd["stripe_sigma_px"]
+    if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s < math.inf:
+        raise ObservationsError(
+            f"{where}.stripe_sigma_px must be a number of pixels > 0, got {s!r}"
+        )
+    return float(s)
+
+
 def _names(value, where: str) -> tuple[str, ...]:
     if not isinstance(value, list) or not all(isinstance(n, str) for n in value):
         raise ObservationsError(f"{where} must be a list of file names")
@@ -491,6 +512,7 @@ def observations_to_dict(obs: Observations) -> dict:
                     else float(v.board_motion_px)
                 }
             ),
+            **({} if v.stripe_sigma_px is None else {"stripe_sigma_px": float(v.stripe_sigma_px)}),
         }
         for v in obs.views
     ]

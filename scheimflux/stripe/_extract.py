@@ -728,6 +728,31 @@ def _local_line(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np
     return np.where(ok, icpt + slope * x, np.nan), np.where(ok, s0, 0.0)
 
 
+def _local_parabola(y: np.ndarray, w: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The offset of `y` across the curve at each scan line where `w` (bool) holds from
+    a parabola fitted to the scan lines within +- `half` where `w` holds (prefix sums of
+    the normal equations; the offset along the scan line times cos of the curve's
+    slope), and how many there are; NaN where fewer than 4 or degenerate."""
+    n = y.size
+    t = np.arange(n, dtype=np.float64) / max(n, 1)  # scaled for conditioning
+    wf = w.astype(np.float64)
+    yw = np.where(w, y, 0.0)
+    cols = np.stack([wf * t**k for k in range(5)] + [yw * t**k for k in range(3)])
+    c = np.zeros((8, n + 1))
+    np.cumsum(cols, axis=1, out=c[:, 1:])
+    lo = np.clip(np.arange(n) - half, 0, n)
+    hi = np.clip(np.arange(n) + half + 1, 0, n)
+    s = c[:, hi] - c[:, lo]
+    a = np.stack([np.stack([s[i + j] for j in range(3)], -1) for i in range(3)], -2)
+    ok = w & (s[0] >= 4) & (np.abs(np.linalg.det(a)) > 1e-300)
+    a[~ok] = np.eye(3)
+    p = np.linalg.solve(a, np.stack([s[5 + i] for i in range(3)], -1)[..., None])[..., 0]
+    pred = p[:, 0] + p[:, 1] * t + p[:, 2] * t**2
+    slope = (p[:, 1] + 2.0 * p[:, 2] * t) / max(n, 1)
+    across = (y - pred) / np.sqrt(1.0 + slope**2)
+    return np.where(ok, across, np.nan), np.where(ok, s[0], 0.0)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Retry:
     """What the long-ridge search of `_extract_one` needs from a pass that found no
@@ -1230,11 +1255,20 @@ def _extract_track(
         confidence = np.where(rim, 0.5, confidence)
     speckle_px = 0.0
     if speckle > SPECKLE_CONTRAST and valid.sum() >= 8:
-        # the centres' scatter about a straight line through their neighbours
-        pred, count = _local_line(np.where(valid, y_fit, 0.0), valid, max(int(3 * width), 10))
-        near = valid & (count >= 6) & np.isfinite(pred)
+        # the centres' scatter across the line about a parabola through their
+        # neighbours (what moves a stripe point off its board, not along it). Speckle
+        # and the smoothing along the line correlate the centres' errors over tens of
+        # scan lines: a fit over +-3 widths followed them and read 0.79-0.87 of the true
+        # scatter (render_capture pairs, tests/test_speckle_capture.py), +-12 widths
+        # 0.93; a parabola, not a line, so that a curved line's bend is not read as
+        # scatter.
+        across, count = _local_parabola(
+            np.where(valid, y_fit, 0.0), valid, max(int(12 * width), 60)
+        )
+        near = count >= 8
         if near.any():
-            speckle_px = 1.4826 * float(np.median(np.abs(y_fit[near] - pred[near])))
+            across = across[near]
+            speckle_px = 1.4826 * float(np.median(np.abs(across)))
     return StripeResult(
         uv=uv,
         strength=np.where(valid, lines.strength, 0.0),

@@ -50,10 +50,11 @@ class StripeResult:
       fraction of the line found by the other scan direction but not returned, because
       `orientation` was given (one centre per scan line asked for); 0 otherwise.
     - `speckle_px`: where the line was found speckled (nearly every profile asymmetric,
-      at random along the line: laser speckle), the robust scatter (px, along the scan
-      lines) of its centres about a straight line through their neighbours; the
+      at random along the line: laser speckle), the robust scatter (px, across the
+      line) of its centres about a straight line through their neighbours; the
       centres are then kept with a looser asymmetry bound and are each off by about
-      that much. 0 for a line that is not speckled.
+      that much (`detect` writes it as the view's `stripe_sigma_px`, by which
+      `calibrate` weights the view's stripe points). 0 for a line that is not speckled.
     """
 
     uv: np.ndarray
