@@ -137,6 +137,11 @@ def correlated_centres_warning(
     )
 
 
+def _other_start(init: str) -> str:
+    """The other camera start to suggest after a failure from `init`."""
+    return "the nominal tilt (--init nominal)" if init == "closed-form" else "--init closed-form"
+
+
 def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) -> Quality:
     """The quality gates of a calibration (see `scheimflux.calibrate._gates`)."""
     params, data = cal.params, cal.data
@@ -151,7 +156,7 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
             "px",
             "the camera model does not fit the corners (a bad start converged to a wrong "
             "camera, a missing distortion model, or a wrong --sigma-corner-px); try "
-            "--init closed-form",
+            + _other_start(cal.init),
         )
     ]
     warnings = []

@@ -342,8 +342,10 @@ def run(args) -> int:
     quality = getattr(cal, "quality", None)
     refusals = []
     if failed and not args.allow_unconverged:
+        closed = cal.init == "closed-form"
+        other = "the nominal tilt (--init nominal)" if closed else "--init closed-form"
         refusals.append(
-            f"calibration did not converge: {', '.join(failed)} (try --init closed-form, "
+            f"calibration did not converge: {', '.join(failed)} (try {other}, "
             "more views, or --allow-unconverged to write it anyway)"
         )
     if quality is not None and not quality.passed and not args.force:
