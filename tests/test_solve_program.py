@@ -172,6 +172,7 @@ def test_joint_residuals_back_project_once():
         sigma_corner_px=jnp.asarray(0.03),
         sigma_stripe_mm=jnp.asarray(1e-3),
         stripe_scale=jnp.asarray([1.0, 2.5, 1.0]),  # view 1: its own (speckled) sigma
+        stripe_gain=jnp.asarray([0.2, 0.4, 0.3]),  # the gates' only: not in the residuals
     )
     jaxpr = jax.make_jaxpr(joint_residuals)(params, data).jaxpr
     assert _count(jaxpr, "scan") == 1  # the undistortion's fixed point, once

@@ -8,6 +8,7 @@ drawn here, as a speckled line scatters its centres (0.3-0.7 px, docs/stripe.md)
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -111,3 +112,65 @@ def test_weighted_plane_fit_equals_repeated_points():
     b = np.asarray(fit_plane_tls(np.repeat(pts, w, axis=0)).n)
     np.testing.assert_allclose(a, b, rtol=1e-10)
     assert not np.allclose(a, np.asarray(fit_plane_tls(pts).n), rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def traced():
+    return simulate_observations(
+        paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=6, stage_scan=False, seed=0
+    )
+
+
+def test_stripe_gain_is_the_distance_per_pixel_by_finite_differences(traced):
+    # ‖∂d/∂u‖ of each stripe pixel (one reverse pass) against central differences of
+    # the stripe residuals (d / σ with unit weights), 0.01 px steps in u and v: d is
+    # smooth (truncation ~1e-4 px² · d''' ≪ 1e-6 relative)
+    from scheimflux.calibrate._plane import _stripe_gains
+
+    obs, _ = traced
+    cal = calibrate(obs)
+    p, data = cal.params, cal.data
+    g = np.asarray(_stripe_gains(p.camera, p.plane, p.board_poses, data.stripe))
+    sigma = float(data.sigma_stripe_mm)
+
+    def d(stripe):
+        shifted = make_data(obs, sigma_stripe_mm=sigma)
+        shifted = dataclasses.replace(shifted, stripe=stripe)
+        return np.asarray(stripe_residuals(p, shifted)).reshape(g.shape) * sigma
+
+    h, s0 = 0.01, np.asarray(data.stripe)
+    grads = []
+    for axis in (0, 1):
+        e = np.zeros(2)
+        e[axis] = h
+        grads.append((d(jnp.asarray(s0 + e)) - d(jnp.asarray(s0 - e))) / (2 * h))
+    fd = np.hypot(*grads)
+    w = np.asarray(data.stripe_w) > 0
+    np.testing.assert_allclose(g[w], fd[w], rtol=1e-6)
+    # the per-view factor: the median over the view's pixels in footprints, here
+    # 0.05-0.5 (a pixel's error moves its point off the board by a fraction of it)
+    gain = np.asarray(data.stripe_gain)
+    footprint = sigma / 0.05
+    for v in range(len(gain)):
+        assert gain[v] == pytest.approx(np.median(g[v][w[v]]) / footprint, rel=1e-9)
+    assert np.all((gain > 0.05) & (gain < 0.6))
+
+
+def test_the_stripe_gate_judges_the_distances_by_their_own_sigma(traced):
+    # Noise of exactly 0.05 px per coordinate on the stripe pixels: the board-stripe RMS
+    # is the RMS σ the gate states (the points' distances off their boards from that
+    # pixel noise), where the footprint's σ made it 0.21 of it. ~3000 points: the RMS
+    # is known to 1/sqrt(2N) = 1.3 %, the per-view median gain to +-3 % along a line
+    obs, _ = traced
+    cal = calibrate(obs)
+    ratio = cal.plane_rms_mm / stripe_sigma_rms_mm(cal.data)
+    assert 0.9 < ratio < 1.1
+    # ... so a line 4x noisier than stated is refused at 1.37x the limit (the footprint's
+    # σ let it pass at 0.29 of the limit)
+    rng = np.random.default_rng(5)
+    noisy = [
+        dataclasses.replace(v, stripe_px=v.stripe_px + rng.normal(0.0, 0.2, v.stripe_px.shape))
+        for v in obs.views
+    ]
+    with pytest.raises(QualityError, match=r"stripe RMS [\d.e-]+ mm is [3-9][\d.]*× the stated"):
+        calibrate(dataclasses.replace(obs, views=noisy))

@@ -8,6 +8,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,7 +32,13 @@ from ._model import (
     make_data,
     view_stripe_scale,
 )
-from ._plane import _has_board_stripes, _plane_rms, fit_laser_plane
+from ._plane import (
+    _has_board_stripes,
+    _plane_rms,
+    fit_laser_plane,
+    stripe_conditioning,
+    stripe_gain,
+)
 from ._quality import _gated, _hint_text
 from ._rejection import (
     _left_out_indices,
@@ -110,8 +117,10 @@ def calibrate(
     - `sigma_stripe_px`: the stripe centres' noise σ (px, across the line), converted
       to mm at the camera's pixel footprint on the boards for the stripe and gauge
       residuals. A view whose own measured σ is larger (`View.stripe_sigma_px`: `detect`
-      measures a speckled line's scatter) has its stripe points weighted by that σ, and
-      the stripe gate compares with the RMS of the σ used.
+      measures a speckled line's scatter) has its stripe points weighted by that σ. The
+      stripe gate compares the board-stripe RMS with the RMS of the σ used, each moved
+      off its board as a pixel's error moves its point (`_plane.stripe_gain`;
+      docs/calibration-trust.md).
     - `robust`: Huber threshold (units of σ) on every residual; None: off (see above).
     - `reject`: the rejection pass's threshold (robust σ); None: no rejection pass.
     - `max_steps`: Levenberg–Marquardt steps per solve.
@@ -176,9 +185,14 @@ def calibrate(
         return _gated(cal, {**outside, **rejected}, None, throw, notes, _tilt_hint(obs, cam_cal))
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
-    scale = view_stripe_scale(obs, sigma_stripe_px)
-    notes += _own_sigma_note(scale, sigma_stripe_px)
-    plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm * scale)
+    own = view_stripe_scale(obs, sigma_stripe_px)
+    notes += _own_sigma_note(own, sigma_stripe_px)
+    plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm * own)
+    # how far a pixel's error moves each view's points off its board (for the gates,
+    # again after the solve; the conditioning reported with the σ it gives)
+    gain = stripe_gain(cam_cal.camera, plane_fit.plane, cam_cal.poses, obs, footprint)
+    cond = stripe_conditioning(plane_fit.points, obs, sigma_mm * own * gain)
+    plane_fit = dataclasses.replace(plane_fit, conditioning=cond)
     fits = {"camera": cam_cal.fit}
     stage = ecc = None
     if obs.stage is not None:
@@ -201,7 +215,8 @@ def calibrate(
         obs,
         sigma_corner_px=sigma_corner_px,
         sigma_stripe_mm=sigma_mm,
-        stripe_scale=scale,
+        stripe_scale=own,
+        stripe_gain=gain,
         robust=robust,
     )
     freeze = cam_cal.freeze
@@ -251,6 +266,10 @@ def calibrate(
             fits["joint"] = fit
             left_out = _left_out_indices(applied)
         outliers.update(outlier_counts(applied), rejection_passes=passes)
+    # the gates judge the distances with the solved geometry (the start's gains differ
+    # by up to ~7 %; the weights do not use them)
+    final_gain = stripe_gain(params.camera, params.plane, params.board_poses, obs, footprint)
+    data = eqx.tree_at(lambda d: d.stripe_gain, data, jax.device_put(final_gain))
     cal = Calibration(
         params=params,
         model=model,

@@ -149,10 +149,12 @@ def _sigma_stripe_mm(diag: dict, params, obs) -> float:
     return float(px) * pixel_footprint_mm(params.camera, params.board_poses, obs)
 
 
-def _stripe_scale(diag: dict, n_views: int) -> np.ndarray | None:
-    """Each view's stripe σ in units of `sigma_stripe_mm` as the solve used it (views
-    weighted by their own measured σ); None: 1 for every view (absent: older files)."""
-    s = diag.get("stripe_sigma_scale")
+def _per_view(diag: dict, key: str, n_views: int) -> np.ndarray | None:
+    """A per-view factor list of the diagnostics as the solve used it
+    (`stripe_sigma_scale`: each view's stripe σ in units of `sigma_stripe_mm`;
+    `stripe_gain`: its σ off its board in pixel footprints); None: 1 for every view
+    (absent: not used, or an older file)."""
+    s = diag.get(key)
     if s is None:
         return None
     ok = isinstance(s, list) and len(s) == n_views
@@ -161,8 +163,7 @@ def _stripe_scale(diag: dict, n_views: int) -> np.ndarray | None:
     )
     if not ok:
         raise CalibrationFileError(
-            f"diagnostics.stripe_sigma_scale must hold one positive number per view "
-            f"({n_views}), got {s!r}"
+            f"diagnostics.{key} must hold one positive number per view ({n_views}), got {s!r}"
         )
     return np.asarray(s, dtype=np.float64)
 
@@ -217,7 +218,8 @@ def restore_calibration(
             observations,
             sigma_corner_px=float(diag.get("sigma_corner_px", 0.03)),
             sigma_stripe_mm=_sigma_stripe_mm(diag, params, observations),
-            stripe_scale=_stripe_scale(diag, len(observations.views)),
+            stripe_scale=_per_view(diag, "stripe_sigma_scale", len(observations.views)),
+            stripe_gain=_per_view(diag, "stripe_gain", len(observations.views)),
             robust=robust,
         )
         if isinstance(diag.get("left_out"), dict):

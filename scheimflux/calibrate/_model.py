@@ -58,6 +58,11 @@ class CalibrationData(eqx.Module):
     # per view: its stripe points' σ in units of `sigma_stripe_mm` (>= 1; above 1 where
     # the view's own measured scatter is larger, `view_stripe_scale`)
     stripe_scale: Float[Array, " V"]
+    # per view: how far off its board a pixel's error across the line moves a stripe
+    # point, in pixel footprints (`_plane.stripe_gain`; 1 where not computed): the
+    # stripe σ of the distances is sigma_stripe_mm · stripe_scale · stripe_gain, which
+    # the stripe gates judge by (the weights keep the footprint's σ: docs/calibration-trust.md)
+    stripe_gain: Float[Array, " V"]
     robust: float | None = eqx.field(static=True, default=None)
     table: TableTargetData | None = None  # a target fixed to the rotary table
     # circle targets: the outline's vertices about each board point (board frame, mm);
@@ -110,11 +115,12 @@ def make_data(
     sigma_corner_px: float = 0.03,
     sigma_stripe_mm: float = 1e-3,
     stripe_scale=None,
+    stripe_gain=None,
     robust: float | None = None,
 ) -> CalibrationData:
     """Arrays for the residual functions from an `Observations` record; `stripe_scale`
-    `(V,)`: each view's stripe σ in units of `sigma_stripe_mm` ([`view_stripe_scale`][];
-    None: 1 for every view)."""
+    `(V,)`: each view's stripe σ in units of `sigma_stripe_mm` ([`view_stripe_scale`][]),
+    `stripe_gain` `(V,)`: the field `stripe_gain` (None: 1 for every view)."""
     centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
     corners, mask = obs.corners()
     corners = np.where(mask[..., None], corners, centre)
@@ -144,7 +150,8 @@ def make_data(
         gauge_radius=put(radius),
         sigma_corner_px=put(sigma_corner_px),
         sigma_stripe_mm=put(sigma_stripe_mm),
-        stripe_scale=put(_stripe_scale(stripe_scale, len(obs.views))),
+        stripe_scale=put(_per_view(stripe_scale, len(obs.views), "stripe_scale")),
+        stripe_gain=put(_per_view(stripe_gain, len(obs.views), "stripe_gain")),
         robust=robust,
         table=None if obs.stage_target is None else table_target_data(obs.stage_target, centre),
         circle_ring=None
@@ -153,15 +160,15 @@ def make_data(
     )
 
 
-def _stripe_scale(scale, n_views: int) -> np.ndarray:
-    if scale is None:
+def _per_view(factors, n_views: int, name: str) -> np.ndarray:
+    if factors is None:
         return np.ones(n_views)
-    scale = np.asarray(scale, dtype=np.float64).reshape(-1)
-    if scale.shape != (n_views,) or not np.all(np.isfinite(scale) & (scale > 0)):
+    factors = np.asarray(factors, dtype=np.float64).reshape(-1)
+    if factors.shape != (n_views,) or not np.all(np.isfinite(factors) & (factors > 0)):
         raise ValueError(
-            f"stripe_scale must hold one positive factor per view ({n_views}), got {scale}"
+            f"{name} must hold one positive factor per view ({n_views}), got {factors}"
         )
-    return scale
+    return factors
 
 
 CIRCLE_VERTICES = 16

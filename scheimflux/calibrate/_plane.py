@@ -15,7 +15,7 @@ from ..geometry._plane import LaserPlane
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
 from ._gates import plane_conditioning
-from ._model import laser_residuals
+from ._model import _pad, laser_points, laser_residuals
 from ._solve import ONE_SHOT
 
 # Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`):
@@ -74,6 +74,53 @@ def board_stripe_points(camera, poses: Pose, obs: Observations) -> np.ndarray:
     return np.asarray(X)[: len(uv)]
 
 
+# The least distance off its board (in pixel footprints) that a stripe pixel's error
+# across the line is taken to cause: a board nearly parallel to the laser plane would
+# otherwise give its stripe points an unbounded weight (5 % is a board ~3° from the
+# plane; the weak-geometry warning names boards within 5°).
+MIN_STRIPE_GAIN = 0.05
+
+
+@exported_jit(compiler_options=ONE_SHOT)
+def _stripe_gains(camera, plane, poses, stripe):
+    """`‖∂d/∂u‖` (mm per px) of each stripe pixel `(V, K, 2)`: d the distance of its
+    laser-plane point from its view's board (`stripe_point_residuals` without weights).
+    Each d depends on its own pixel only, so one reverse pass gives them all."""
+
+    def distances(uv):
+        (X,) = laser_points(camera, plane, uv)
+
+        def one(pose, X):
+            n_b = pose.R[:, 2]
+            return X @ n_b - jnp.dot(n_b, pose.translation)
+
+        return jax.vmap(one)(poses, X)
+
+    g = jax.grad(lambda uv: jnp.sum(distances(uv)))(stripe)
+    return jnp.linalg.norm(g, axis=-1)
+
+
+def stripe_gain(camera, plane, poses: Pose, obs: Observations, footprint_mm: float) -> np.ndarray:
+    """Per view `(V,)`: how far off its board a stripe pixel's error across the line moves
+    its point, in pixel footprints (the median over the view's pixels of `‖∂d/∂u‖` over
+    `footprint_mm`; 1 for a view without stripe pixels; at least `MIN_STRIPE_GAIN`).
+
+    The stripe σ in mm is the pixel σ times the footprint; the distance off the board
+    is less: the footprint times the sine of the board's angle with the laser plane over
+    the sine of the ray's angle with it (0.17-0.46 over the views of an achromat at
+    x0.5, within +-3 % along each view's line): the stripe gates judge the distances by
+    the σ it gives (`CalibrationData.stripe_gain`)."""
+    centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
+    stripe, w = _pad([v.stripe_px for v in obs.views], centre)
+    g = np.asarray(_stripe_gains(camera, plane, poses, jax.device_put(stripe)))
+    out = np.ones(len(obs.views))
+    for i in range(len(out)):
+        used = (w[i] > 0) & np.isfinite(g[i])
+        if used.any():
+            out[i] = max(float(np.median(g[i][used])) / footprint_mm, MIN_STRIPE_GAIN)
+    return out
+
+
 def fit_plane_tls(points: np.ndarray, weights: np.ndarray | None = None) -> LaserPlane:
     """Total-least-squares plane through 3-D points (SVD of the centred points; with
     `weights` `(N,)`, of the points about their weighted centroid, each row scaled by
@@ -108,6 +155,16 @@ def _stripe_views(obs: Observations) -> np.ndarray:
     return np.concatenate(idx) if idx else np.zeros(0, int)
 
 
+def stripe_conditioning(points: np.ndarray, obs: Observations, sigma_mm) -> dict:
+    """`_gates.plane_conditioning` of the board stripe points `(N, 3)` (in
+    `board_stripe_points` order) with their σ given per view `(V,)` or for all: the
+    RMS over the points of their σ."""
+    view = _stripe_views(obs)
+    sigma = np.broadcast_to(np.asarray(sigma_mm, dtype=np.float64), (len(obs.views),))
+    rms = float(np.sqrt(np.mean(sigma[view] ** 2))) if len(view) else float(sigma.max())
+    return plane_conditioning(points, view, rms)
+
+
 def fit_laser_plane(camera, poses: Pose, obs: Observations, *, sigma_mm=None) -> PlaneFit:
     """Paper §2.4 step 3: stripe points on the calibrated boards → TLS plane.
 
@@ -131,13 +188,10 @@ def fit_laser_plane(camera, poses: Pose, obs: Observations, *, sigma_mm=None) ->
     pts = board_stripe_points(camera, poses, obs)
     cond, weights = None, None
     if sigma_mm is not None:
-        view = _stripe_views(obs)
+        cond = stripe_conditioning(pts, obs, sigma_mm)
         sigma = np.broadcast_to(np.asarray(sigma_mm, dtype=np.float64), (len(obs.views),))
-        point_sigma = sigma[view]
-        rms = float(np.sqrt(np.mean(point_sigma**2))) if len(view) else float(sigma.max())
-        cond = plane_conditioning(pts, view, rms)
         if np.ptp(sigma) > 0:
-            weights = 1.0 / point_sigma**2
+            weights = 1.0 / sigma[_stripe_views(obs)] ** 2
     plane = fit_plane_tls(pts, weights)
     res = np.asarray(plane.signed_distance(jnp.asarray(pts)))
     return PlaneFit(plane, pts, res, cond)
@@ -154,11 +208,12 @@ def _plane_rms(params, data) -> float:
 
 
 def stripe_sigma_rms_mm(data) -> float:
-    """The RMS of the board stripe points' σ (mm; each view's own, `data.stripe_scale`):
-    what `_plane_rms` is for noise of exactly those σ."""
+    """The RMS of the board stripe points' σ (mm) off their boards (each view's pixel
+    σ, `data.stripe_scale`, moved off its board, `data.stripe_gain`): what `_plane_rms`
+    is for pixel noise of exactly those σ."""
     w = np.asarray(data.stripe_w) > 0
     n = w.sum(axis=1)
-    scale2 = np.asarray(data.stripe_scale) ** 2
+    scale2 = (np.asarray(data.stripe_scale) * np.asarray(data.stripe_gain)) ** 2
     mean2 = float(np.sum(n * scale2) / n.sum()) if n.sum() else 1.0
     return float(data.sigma_stripe_mm) * float(np.sqrt(mean2))
 

@@ -119,7 +119,8 @@ def register(subparsers) -> None:
         "--sigma-stripe-px",
         type=float,
         default=0.05,  # calibrate._calibrate.SIGMA_STRIPE_PX (not imported: it loads JAX)
-        help="stripe-centre noise, weights the stripe and gauge points (default: %(default)s)",
+        help="stripe-centre noise across the line (px), weights the stripe and gauge points; "
+        "a view's own measured noise (stripe_sigma_px) where larger (default: %(default)s)",
     )
     p.add_argument(
         "--robust",

@@ -23,6 +23,7 @@
                  "frozen": ["camera.dx", ...], "converged": true,
                  "sigma_corner_px": 0.03, "sigma_stripe_mm": 1.4e-4, "robust": null,
                  "stripe_sigma_scale": [1.0, 4.2, ...],             # optional
+                 "stripe_gain": [0.17, 0.33, ...],                  # optional
                  "field_radius_px": 900.0, ...},                    # optional
  "software": {"name": "scheimflux", "version": "0.1.0"}}
 ```
@@ -253,6 +254,9 @@ def _weights(cal) -> dict:
     scale = np.asarray(data.stripe_scale)
     if np.any(scale != 1.0):  # views weighted by their own measured stripe σ
         out["stripe_sigma_scale"] = [float(x) for x in scale]
+    gain = np.asarray(data.stripe_gain)
+    if np.any(gain != 1.0):  # each view's σ off its board, in footprints (the gates')
+        out["stripe_gain"] = [float(x) for x in gain]
     quality = getattr(cal, "quality", None)
     radius = getattr(quality, "rejected", {}).get("field_radius_px")
     if radius is not None:  # calibrated inside this radius; re-applied on reading
