@@ -75,9 +75,9 @@ def board_stripe_points(camera, poses: Pose, obs: Observations) -> np.ndarray:
 
 
 # The least distance off its board (in pixel footprints) that a stripe pixel's error
-# across the line is taken to cause: a board nearly parallel to the laser plane would
-# otherwise give its stripe points an unbounded weight (5 % is a board ~3° from the
-# plane; the weak-geometry warning names boards within 5°).
+# across the line is taken to cause: for a board nearly parallel to the laser plane the
+# stripe gate's σ would otherwise vanish (5 % is a board ~3° from the plane; the
+# weak-geometry warning names boards within 5°).
 MIN_STRIPE_GAIN = 0.05
 
 

@@ -173,7 +173,9 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 stripe_sigma_rms_mm(data),
                 "mm",
                 "the board stripe points do not lie on one laser plane (stripes from the "
-                "wrong views, reflections, or a wrong --sigma-stripe-px)",
+                "wrong views, reflections, or a wrong --sigma-stripe-px; the σ is each "
+                "view's pixel σ as it moves the points off their boards, "
+                "diagnostics.stripe_gain)",
             )
         )
         gates.append(tails_gate("stripe", stripe[sw]))
