@@ -79,6 +79,21 @@ def test_summary_frozen_override_missing_numbers_and_camera_only():
     assert text.splitlines()[-1].startswith("note: no stripe pixels on the board views")
 
 
+def test_summary_states_the_stripe_gates_sigma():
+    # each view's σ off its board = the stated σ at the footprint × its own-noise factor
+    # × its gain: views (1, 1.0, 0.2), (1, 8.0, 0.4) -> 0.2 and 3.2 µm of 1 µm stated
+    doc = calibration_to_dict(_cal())
+    d = doc["diagnostics"]
+    assert "stripe σ off the boards" not in format_summary(doc)  # no gains: not stated
+    d.update(sigma_stripe_mm=1e-3, stripe_gain=[0.2, 0.4], stripe_sigma_scale=[1.0, 8.0])
+    line = [ln for ln in format_summary(doc).splitlines() if "stripe σ off" in ln]
+    assert line == [
+        "stripe σ off the boards (the stripe gate's): 0.2-3.2 um per view = 1 um (the stated "
+        "pixel σ at a pixel's footprint) × 1-8 (views' own noise, stripe_sigma_px) × 0.2-0.4 "
+        "(a pixel's error moved off its board)"
+    ]
+
+
 def test_the_cli_prints_the_library_summary(tmp_path, monkeypatch, capsys):
     cal = _cal()
     calibrate_module = importlib.import_module("scheimflux.calibrate")  # where the CLI looks

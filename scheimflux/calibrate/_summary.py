@@ -111,6 +111,9 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
         lines.append("stage: not calibrated (no rotary-stage scan in the observations)")
     lines.append(f"reprojection RMS: {_num(d.get('reprojection_rms_px'), 1.0, '.4f')} px")
     lines.append(f"laser-plane fit RMS: {_num(d.get('laser_plane_rms_mm'), 1e3, '.3f')} um")
+    stripe_sigma = _stripe_sigma_line(d)
+    if stripe_sigma:
+        lines.append(stripe_sigma)
     if d.get("gauge_rms_mm") is not None:
         lines.append(f"gauge RMS: {_num(d['gauge_rms_mm'], 1e3, '.3f')} um")
     for name, s in d.get("solves", {}).items():
@@ -121,6 +124,27 @@ def format_summary(doc: dict, *, frozen: tuple = ()) -> str:
         lines.append(f"solve {name:<7}: {s['steps']:>4} steps, {s['time_s']:7.2f} s, {ok}")
     lines.append(f"frozen: {', '.join(d.get('frozen', [])) or '(none)'}")
     return "\n".join(lines)
+
+
+def _stripe_sigma_line(d: dict) -> str:
+    """`"stripe σ off the boards: …"`: each view's σ of its stripe points' distances
+    from its board, as the stripe gate took them (`stripe_gain`, `stripe_sigma_scale`
+    and `sigma_stripe_mm` of the diagnostics); "" where the file has no gains."""
+    gain, s_mm = d.get("stripe_gain"), d.get("sigma_stripe_mm")
+    if not isinstance(gain, list) or not gain or not isinstance(s_mm, (int, float)):
+        return ""
+    scale = d.get("stripe_sigma_scale") or [1.0] * len(gain)
+    sigma = [s_mm * a * b * 1e3 for a, b in zip(scale, gain)]
+    own = (
+        f" × {min(scale):.2g}-{max(scale):.2g} (views' own noise, stripe_sigma_px)"
+        if max(scale) > 1.0
+        else ""
+    )
+    return (
+        f"stripe σ off the boards (the stripe gate's): {min(sigma):.3g}-{max(sigma):.3g} um "
+        f"per view = {s_mm * 1e3:.3g} um (the stated pixel σ at a pixel's footprint){own} "
+        f"× {min(gain):.2g}-{max(gain):.2g} (a pixel's error moved off its board)"
+    )
 
 
 def _uncertainty(cal):
