@@ -188,9 +188,17 @@ def calibrate(
     own = view_stripe_scale(obs, sigma_stripe_px)
     notes += _own_sigma_note(own, sigma_stripe_px)
     plane_fit = fit_laser_plane(cam_cal.camera, cam_cal.poses, obs, sigma_mm=sigma_mm * own)
+    data = make_data(
+        obs,
+        sigma_corner_px=sigma_corner_px,
+        sigma_stripe_mm=sigma_mm,
+        stripe_scale=own,
+        robust=robust,
+    )
     # how far a pixel's error moves each view's points off its board (for the gates,
     # again after the solve; the conditioning reported with the σ it gives)
-    gain = stripe_gain(cam_cal.camera, plane_fit.plane, cam_cal.poses, obs, footprint)
+    data = _with_gain(data, cam_cal.camera, plane_fit.plane, cam_cal.poses, footprint)
+    gain = np.asarray(data.stripe_gain)
     cond = stripe_conditioning(plane_fit.points, obs, sigma_mm * own * gain)
     plane_fit = dataclasses.replace(plane_fit, conditioning=cond)
     fits = {"camera": cam_cal.fit}
@@ -211,14 +219,6 @@ def calibrate(
     if obs.stage_target is not None:  # a target on the table (`_stage_table`)
         stage, ecc, table_pose = table_target_start(cam_cal.camera, obs, stage, ecc)
     params = SystemParams(cam_cal.camera, cam_cal.poses, plane_fit.plane, stage, ecc, table_pose)
-    data = make_data(
-        obs,
-        sigma_corner_px=sigma_corner_px,
-        sigma_stripe_mm=sigma_mm,
-        stripe_scale=own,
-        stripe_gain=gain,
-        robust=robust,
-    )
     freeze = cam_cal.freeze
     start = params
     hint = None if stage is None else _gauge_start_hint(params, data, obs)
@@ -268,8 +268,7 @@ def calibrate(
         outliers.update(outlier_counts(applied), rejection_passes=passes)
     # the gates judge the distances with the solved geometry (the start's gains differ
     # by up to ~7 %; the weights do not use them)
-    final_gain = stripe_gain(params.camera, params.plane, params.board_poses, obs, footprint)
-    data = eqx.tree_at(lambda d: d.stripe_gain, data, jax.device_put(final_gain))
+    data = _with_gain(data, params.camera, params.plane, params.board_poses, footprint)
     cal = Calibration(
         params=params,
         model=model,
@@ -358,6 +357,12 @@ def board_scale_note(obs: Observations, poses) -> tuple[str, ...]:
         "check the board's square size (detect --square-mm: it sets the scale of every "
         "calibrated length) and the nominal focal length and magnification",
     )
+
+
+def _with_gain(data, camera, plane, poses, footprint_mm: float):
+    """`data` with its `stripe_gain` computed for this geometry ([`stripe_gain`][])."""
+    gain = stripe_gain(camera, plane, poses, data, footprint_mm)
+    return eqx.tree_at(lambda d: d.stripe_gain, data, jax.device_put(gain))
 
 
 def _own_sigma_note(scale: np.ndarray, sigma_stripe_px: float) -> tuple[str, ...]:

@@ -103,9 +103,8 @@ def view_stripe_scale(obs, sigma_stripe_px: float) -> np.ndarray:
     a view measured cleaner than it is not trusted beyond it)."""
     out = np.ones(len(obs.views))
     for i, v in enumerate(obs.views):
-        own = getattr(v, "stripe_sigma_px", None)
-        if own is not None and own > sigma_stripe_px:
-            out[i] = float(own) / float(sigma_stripe_px)
+        if v.stripe_sigma_px is not None and v.stripe_sigma_px > sigma_stripe_px:
+            out[i] = float(v.stripe_sigma_px) / float(sigma_stripe_px)
     return out
 
 

@@ -15,7 +15,7 @@ from ..geometry._plane import LaserPlane
 from ..geometry._transforms import Pose
 from ..io._observations import Observations
 from ._gates import plane_conditioning
-from ._model import _pad, laser_points, laser_residuals
+from ._model import laser_points, laser_residuals
 from ._solve import ONE_SHOT
 
 # Compiled residual evaluation for the summaries (see `_camera._corner_errors_jit`):
@@ -100,20 +100,20 @@ def _stripe_gains(camera, plane, poses, stripe):
     return jnp.linalg.norm(g, axis=-1)
 
 
-def stripe_gain(camera, plane, poses: Pose, obs: Observations, footprint_mm: float) -> np.ndarray:
+def stripe_gain(camera, plane, poses: Pose, data, footprint_mm: float) -> np.ndarray:
     """Per view `(V,)`: how far off its board a stripe pixel's error across the line moves
-    its point, in pixel footprints (the median over the view's pixels of `‖∂d/∂u‖` over
-    `footprint_mm`; 1 for a view without stripe pixels; at least `MIN_STRIPE_GAIN`).
+    its point, in pixel footprints (the median over the view's pixels of weight > 0 in
+    `data` of `‖∂d/∂u‖` over `footprint_mm`; 1 for a view without stripe pixels; at
+    least `MIN_STRIPE_GAIN`).
 
     The stripe σ in mm is the pixel σ times the footprint; the distance off the board
     is less: the footprint times the sine of the board's angle with the laser plane over
     the sine of the ray's angle with it (0.17-0.46 over the views of an achromat at
     x0.5, within +-3 % along each view's line): the stripe gates judge the distances by
     the σ it gives (`CalibrationData.stripe_gain`)."""
-    centre = np.array([(obs.width - 1) / 2, (obs.height - 1) / 2])
-    stripe, w = _pad([v.stripe_px for v in obs.views], centre)
-    g = np.asarray(_stripe_gains(camera, plane, poses, jax.device_put(stripe)))
-    out = np.ones(len(obs.views))
+    g = np.asarray(_stripe_gains(camera, plane, poses, data.stripe))
+    w = np.asarray(data.stripe_w)
+    out = np.ones(len(w))
     for i in range(len(out)):
         used = (w[i] > 0) & np.isfinite(g[i])
         if used.any():

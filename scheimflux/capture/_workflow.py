@@ -62,7 +62,7 @@ class CaptureReport:
       image) to the one its line was read from ([`BoardMotion`][]; `checked` False: it
       could not be measured, `why` says why). A view whose board moved more than
       `MOVED_PX` has its stripe refused.
-    - `speckle_px`: per view number whose laser line was read as speckled (with a
+    - `speckle_px`: per kept view number whose laser line was read as speckled (with a
       laser-off image), its centres' scatter across the line (px,
       `StripeResult.speckle_px`), written as the view's `stripe_sigma_px` in the
       observations ([`speckle_summary`][] says so).
@@ -255,8 +255,6 @@ def detect_captures(
                                margin_px=margin_px, min_points=min_points,
                                note=lambda text, cv=cv: note(cv, text))  # fmt: skip
         corners, stripe_uv, stripe_res = line.corners, line.stripe_uv, line.stripe
-        if stripe_res is not None and stripe_res.speckle_px > 0 and len(stripe_uv):
-            report.speckle_px[cv.view] = float(stripe_res.speckle_px)
         # Did the board move between the exposures whose target points and laser line
         # are joined? A pair: its board image and stripe image; a single image with a
         # laser-off image: the target is found in the laser-off one.
@@ -299,7 +297,7 @@ def detect_captures(
         # a speckled line's own scatter, kept for calibrate's weights and gates
         sigma = None
         if stripe_res is not None and stripe_res.speckle_px > 0 and len(stripe_uv):
-            sigma = float(stripe_res.speckle_px)
+            sigma = report.speckle_px[cv.view] = float(stripe_res.speckle_px)
         views.append(View(corners, stripe_uv, cv.names, motion_px, sigma))
         report.kept.append(cv.view)
         report.circle_diameters_mm.extend(dots)
