@@ -11,10 +11,10 @@ For each shipped lens (singlet, achromat, double-gauss, tessar) and magnificatio
 to the axis, the sensor refocused on it through the real lens) and observed with 15 board
 views of 11 × 8 corners (0.03 px corner noise, 0.05 px stripe noise) by pupil-integrated
 imaging (`imaging="centroid"`: each pixel is the centroid of the bundle filling the
-stop, vignetting included; the lens's own f-number unless `--f-number`). Each data set
-is calibrated with every model in `--models` (default: scheimflux's central thick lens
-and its non-central thick lens, both with their default options, and OpenCV's tilted
-model, `model="opencv", opencv_flags="tilted"`); `thick-lens-noncentral/profile` is the
+stop, vignetting included, 16 rings unless `--rings`; the lens's own f-number unless
+`--f-number`). Each data set is calibrated with every model in `--models` (default:
+scheimflux's central thick lens and its non-central thick lens, both with their default
+options, and OpenCV's tilted model, `model="opencv", opencv_flags="tilted"`); `thick-lens-noncentral/profile` is the
 non-central thick lens with `gauge="profile"`; `thick-lens-noncentral/released-tilt`
 is a diagnostic (`RELEASED_TILT`: the tilt released in the non-central solve), and any
 other name is passed through to `calibrate(model=)`.
@@ -164,11 +164,18 @@ def _calibrate(obs, name: str):
     return cal, conv, time.perf_counter() - t0
 
 
+def _data_tag(lens_tag, mag, imaging, sampling) -> str:
+    """Cache file stem: the world and, for pupil centroids, the quadrature's size (data
+    traced with another number of rings is not reused)."""
+    tag = f"{lens_tag}-x{mag:g}-{imaging}"
+    return tag if imaging == "chief" else f"{tag}-n{sampling.size}"
+
+
 def _world_data(rig, lens_tag, mag, seed, imaging, sampling, cache):
     """The observations of one seed (from `cache` when there)."""
     path = None
     if cache:
-        path = os.path.join(cache, f"{lens_tag}-x{mag:g}-{imaging}-s{seed}.json")
+        path = os.path.join(cache, f"{_data_tag(lens_tag, mag, imaging, sampling)}-s{seed}.json")
         if os.path.exists(path):
             return read_observations(path)
     obs, _ = simulate_observations(
@@ -197,7 +204,7 @@ def _logged(log, rec):
     """The last record of `log` (JSON lines) for the same lens, |β|, seed, imaging and model."""
     if not log or not os.path.exists(log):
         return None
-    key = ("lens", "mag", "seed", "imaging", "model", "max_radius_px")
+    key = ("lens", "mag", "seed", "imaging", "rings", "model", "max_radius_px")
     found = None
     with open(log) as fh:
         for line in fh:
@@ -217,7 +224,7 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
     lens_tag = lens_name if f_number is None else f"{lens_name}-f{f_number:g}"
     rig = build_rig(lens, mag, sensor=SENSOR, pixel_pitch_mm=(PITCH_MM, PITCH_MM))
     sampling = pupil_grid(rings)
-    grid = cache and os.path.join(cache, f"{lens_tag}-x{mag:g}-{imaging}-grid.npz")
+    grid = cache and os.path.join(cache, f"{_data_tag(lens_tag, mag, imaging, sampling)}-grid.npz")
     if grid and os.path.exists(grid):
         with np.load(grid) as z:
             X, uv = z["X"], z["uv"]
@@ -236,6 +243,8 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
         for m in models:
             rec = dict(lens=lens_tag, mag=mag, seed=seed, imaging=imaging, model=m,
                        n_covered=int(inside.sum()), n_full=len(X))  # fmt: skip
+            if imaging != "chief":
+                rec.update(rings=rings)
             if max_radius_px is not None:
                 rec.update(max_radius_px=max_radius_px)
             done = _logged(log, rec) if resume else None
@@ -271,7 +280,7 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
             print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: "
                   + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                               for k, v in rec.items() if k not in ("lens", "mag", "model",
-                                                                   "seed", "imaging",
+                                                                   "seed", "imaging", "rings",
                                                                    "max_radius_px")),
                   flush=True)  # fmt: skip
             if log:
@@ -337,7 +346,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--models", default=",".join(MODELS), help="calibrate(model=) names")
     ap.add_argument("--imaging", choices=("centroid", "chief"), default="centroid")
     ap.add_argument("--f-number", type=float, default=None, help="default: each lens's own")
-    ap.add_argument("--rings", type=int, default=8, help="pupil quadrature rings")
+    ap.add_argument("--rings", type=int, default=16, help="pupil quadrature rings")
     ap.add_argument("--max-radius-px", type=float, default=None,
                     help="drop corners and stripe pixels beyond this radius (px) from the "
                          "sensor centre")  # fmt: skip
