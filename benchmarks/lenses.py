@@ -14,10 +14,11 @@ imaging (`imaging="centroid"`: each pixel is the centroid of the bundle filling 
 stop, vignetting included, 16 rings unless `--rings`; the lens's own f-number unless
 `--f-number`). Each data set is calibrated with every model in `--models` (default:
 scheimflux's central thick lens and its non-central thick lens, both with their default
-options, and OpenCV's tilted model, `model="opencv", opencv_flags="tilted"`); `thick-lens-noncentral/profile` is the
-non-central thick lens with `gauge="profile"`; `thick-lens-noncentral/released-tilt`
-is a diagnostic (`RELEASED_TILT`: the tilt released in the non-central solve), and any
-other name is passed through to `calibrate(model=)`.
+options, and OpenCV's tilted model, `model="opencv", opencv_flags="tilted"`);
+`thick-lens-noncentral/profile` is the non-central thick lens with `gauge="profile"`;
+`thick-lens-noncentral/released-tilt` is a diagnostic (`RELEASED_TILT`: the tilt
+released in the non-central solve), and any other name is passed through to
+`calibrate(model=)`.
 
 Error: laser-plane points on a 16 × 13 grid over 5 … 95 % of the sensor, imaged by the
 same tracer as the data (pupil centroids; chief rays with `--imaging chief`; noise-free),

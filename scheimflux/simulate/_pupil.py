@@ -167,9 +167,9 @@ def _coverage(rig: Rig, x_c, node, cell, sd):
     δ = (r² − ρ²) / |∇ρ²| along the unit normal g = ∇ρ² / |∇ρ²| (ρ² the ray's squared
     height on the surface, r its clear semi-diameter; ∇ by forward-mode autodiff through
     the aimed trace). The cell, taken as the rectangle of its radial and arc extents about
-    the node, projects onto g as an interval [lo, hi]; the share passed is
-    clip((δ − lo) / (hi − lo), 0, 1): 1 when the edge misses the cell, 0 beyond it, exact
-    for an edge parallel to a side, and the surfaces' smallest share counts.
+    the node, passes the share of its area on the clear side of that line
+    ([`_straight_edge_share`][]: exact for a straight edge, 1 where the edge misses the
+    cell, 0 where the cell lies beyond it); the surfaces' smallest share counts.
     """
     stop = rig.lens.stop
 
@@ -178,8 +178,8 @@ def _coverage(rig: Rig, x_c, node, cell, sd):
 
     p, d, ok, r2 = _edge_ray(rig, x_c, node * sd)
     grad = jax.jacfwd(rho2)(node)  # (surfaces, 2)
-    gnorm = jnp.sqrt(jnp.sum(grad**2, axis=-1))
-    has = gnorm > 0.0
+    gnorm = jnp.sqrt(jnp.maximum(jnp.sum(grad**2, axis=-1), 1e-300))  # no NaN derivative
+    has = gnorm > 1e-150
     g = grad / jnp.where(has, gnorm, 1.0)[:, None]
     sds = rig.lens.semi_diameters
     finite = jnp.isfinite(sds) & (jnp.arange(sds.shape[0]) != stop)
