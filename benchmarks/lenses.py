@@ -277,7 +277,8 @@ def run_world(lens_name, mag, seeds, models, imaging, f_number, rings, cache=Non
                 pupil = getattr(cal.camera, "pupil", None)
                 if pupil is not None:
                     rec.update(pupil_mm=[float(c) for c in np.asarray(pupil)],
-                               lateral_mm=[float(c) for c in np.asarray(cal.camera.lateral)])
+                               lateral_mm=[float(c) for c in np.asarray(cal.camera.lateral)],
+                               pivot_mm=[float(c) for c in np.asarray(cal.camera.pivot)])
             print(f"  {lens_tag} ×{mag:g} seed {seed} {m}: "
                   + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                               for k, v in rec.items() if k not in ("lens", "mag", "model",

@@ -72,13 +72,15 @@ def test_origin_moves_along_the_axis_with_the_field():
     np.testing.assert_allclose(ray.direction, c.backproject(uv).direction, atol=1e-15)
 
 
-@pytest.mark.parametrize("lateral", [(0.0, 0.0), (0.004, -0.0025)])
+@pytest.mark.parametrize("lateral, pivot", [((0.0, 0.0), (0.0, 0.0)),
+                                             ((0.004, -0.0025), (0.0, 0.0)),
+                                             ((0.004, -0.0025), (-0.6, 3.0))])  # fmt: skip
 @pytest.mark.parametrize("depth", [15.0, 40.0, 300.0])
-def test_project_inverts_backproject(depth, lateral):
+def test_project_inverts_backproject(depth, lateral, pivot):
     # Round trip through the fixed point: a point on the pixel's ray projects back to
     # the pixel. Tolerance: the fixed point is checked to 1e-12 mm relative; the
     # undistortion to 1e-13: ≪ 1e-8 px.
-    cam = _wide(lateral=lateral)
+    cam = _wide(lateral=lateral, pivot=pivot)
     uv = _pixels()
     ray = cam.backproject(uv)
     X = ray.origin + depth * ray.direction
@@ -151,6 +153,40 @@ def test_lateral_offset_rays_pass_the_offset_centre_and_the_in_focus_point():
     assert skew.max() > 1e-3
 
 
+def test_pivot_rays_turn_about_the_shifted_in_focus_point():
+    # Independent geometry: with pivot terms each ray starts at (ax, ay, Δz + Δp) and
+    # still passes through the pixel's in-focus point shifted by Δz along the axis
+    # (Newton's formula on the central camera's undistorted pixel), so it is the sliding
+    # ray turned about that point. Tolerances: rounding of a 3×3 homogeneous map, 1e-12 mm.
+    a, b = np.array([0.004, -0.0025]), np.array([-0.6, 3.0])
+    cam, slid = _wide(lateral=a, pivot=b), _wide(lateral=a)
+    c = cam.central
+    uv = _pixels(20, seed=6)
+    ray = cam.backproject(uv)
+    xi_u, ok = jax.vmap(lambda p: c._undistort(c._untilted(c.sensor_point(p))))(uv)
+    assert bool(jnp.all(ok))
+    r2 = np.sum(np.asarray(xi_u) ** 2, axis=1)
+    dz, dp = 0.08 * r2 - 0.05 * r2**2, b[0] * r2 + b[1] * r2**2
+    np.testing.assert_array_equal(np.asarray(ray.origin[:, :2]), np.broadcast_to(a, (20, 2)))
+    np.testing.assert_allclose(ray.origin[:, 2], dz + dp, rtol=1e-12)
+    uv_u = jax.vmap(c._sensor_pixel)(xi_u)
+    Ph = jax.vmap(lambda p: c.pixel_to_object_matrix() @ jnp.append(p, 1.0))(uv_u)
+    P = np.asarray(Ph[:, :3] / Ph[:, 3:]) + np.stack([0 * dz, 0 * dz, dz], axis=1)
+    d = P - np.asarray(ray.origin)
+    miss = np.linalg.norm(np.cross(d, np.asarray(ray.direction)), axis=1)
+    assert miss.max() < 1e-12, miss.max()
+    assert np.all(d @ np.array([0, 0, 1.0]) > 0)  # in front
+    # the sliding ray (pivot 0) passes the same point in another direction
+    ray0 = slid.backproject(uv)
+    miss0 = np.linalg.norm(np.cross(P - np.asarray(ray0.origin), np.asarray(ray0.direction)),
+                           axis=1)  # fmt: skip
+    assert miss0.max() < 1e-12
+    turn = np.arccos(np.clip(np.sum(np.asarray(ray.direction * ray0.direction), 1), -1, 1))
+    assert turn.max() > 1e-4  # radians: the pivot terms are not a no-op
+    with pytest.raises(ValueError, match="pivot must have shape"):
+        _wide(pivot=(0.1,))
+
+
 def test_bad_lateral_shape_is_refused():
     with pytest.raises(ValueError, match="lateral must have shape"):
         _wide(lateral=(0.1, 0.2, 0.3))
@@ -159,7 +195,7 @@ def test_bad_lateral_shape_is_refused():
 # slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
 @pytest.mark.slow
 def test_jit_equals_eager_and_vmap_equals_loop():
-    cam = _wide(lateral=(0.004, -0.0025))
+    cam = _wide(lateral=(0.004, -0.0025), pivot=(-0.6, 3.0))
     X = cam.backproject(_pixels(8)).direction * 30.0
     jitted = eqx.filter_jit(lambda c, x: c.project_with_mask(x))(cam, X)
     with jax.disable_jit():
@@ -177,12 +213,12 @@ def test_jit_equals_eager_and_vmap_equals_loop():
 
 def _param_vector(cam):
     return jnp.concatenate([jnp.stack([cam.f, cam.e, cam.z0, cam.theta]), cam.pupil,
-                            cam.lateral])  # fmt: skip
+                            cam.lateral, cam.pivot])  # fmt: skip
 
 
 def _with(cam, v):
-    where = lambda c: (c.f, c.e, c.z0, c.theta, c.pupil, c.lateral)  # noqa: E731
-    return eqx.tree_at(where, cam, (v[0], v[1], v[2], v[3], v[4:6], v[6:8]))
+    where = lambda c: (c.f, c.e, c.z0, c.theta, c.pupil, c.lateral, c.pivot)  # noqa: E731
+    return eqx.tree_at(where, cam, (v[0], v[1], v[2], v[3], v[4:6], v[6:8], v[8:10]))
 
 
 # slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
@@ -191,7 +227,7 @@ def test_projection_gradients_match_finite_differences():
     # The implicit derivative through the fixed point (one Newton step at the solution)
     # against central differences of the converged projection. Step 1e-6 relative:
     # truncation ~1e-12 relative, rounding ~1e-16/1e-6 = 1e-10; tolerance 1e-6 relative.
-    cam = _wide(lateral=(0.004, -0.0025))
+    cam = _wide(lateral=(0.004, -0.0025), pivot=(-0.6, 3.0))
     X = cam.backproject(_pixels(5, seed=3)).direction * 25.0 + jnp.array([0.0, 0.0, 0.1])
 
     def fn(v):
@@ -210,7 +246,7 @@ def test_projection_gradients_match_finite_differences():
 # slow: 50-120 s of compilation on two cores (the eager side and forward-mode FD)
 @pytest.mark.slow
 def test_backprojection_gradients_match_finite_differences():
-    cam = _wide(lateral=(0.004, -0.0025))
+    cam = _wide(lateral=(0.004, -0.0025), pivot=(-0.6, 3.0))
     uv = _pixels(4, seed=5)
 
     def fn(v):
@@ -271,6 +307,13 @@ def test_calibration_file_camera_section_round_trips():
     doc = json.loads(json.dumps({"camera": camera_to_dict(cam)}))
     assert doc["camera"]["ay"] == {"value": -0.0025, "unit": "mm"}
     assert tree_allclose(_camera(doc, "thick-lens-noncentral")[0], cam, rtol=1e-15, atol=0)
+    # so do the pivot terms; a file written before them (no b1, b2) loads with 0
+    cam = _wide(lateral=(0.004, -0.0025), pivot=(-0.6, 3.0))
+    doc = json.loads(json.dumps({"camera": camera_to_dict(cam)}))
+    assert doc["camera"]["b2"] == {"value": 3.0, "unit": "mm"}
+    assert tree_allclose(_camera(doc, "thick-lens-noncentral")[0], cam, rtol=1e-15, atol=0)
+    del doc["camera"]["b1"], doc["camera"]["b2"]
+    np.testing.assert_array_equal(np.asarray(_camera(doc, "thick-lens-noncentral")[0].pivot), 0.0)
     del doc["camera"]["ax"], doc["camera"]["ay"]
     old = _camera(doc, "thick-lens-noncentral")[0]
     np.testing.assert_array_equal(np.asarray(old.lateral), 0.0)

@@ -481,8 +481,9 @@ def _check_gauge(gauge, model, distortion, freeze) -> None:
 
 
 #: The non-central camera's terms beyond the central thick lens: the pupil's axial shift
-#: (c1, c2) and the origin's lateral offset (ax, ay), tested and held together.
-NONCENTRAL_TERMS = ("camera.pupil", "camera.lateral")
+#: (c1, c2), the origin's lateral offset (ax, ay) and its pivot shift (b1, b2), tested
+#: and held together.
+NONCENTRAL_TERMS = ("camera.pupil", "camera.lateral", "camera.pivot")
 
 
 def _noncentral_free(freeze) -> tuple[str, ...]:
@@ -491,7 +492,7 @@ def _noncentral_free(freeze) -> tuple[str, ...]:
 
 
 def _pupil_kept_if_significant(central, fit, start, freeze, solve_held):
-    """The non-central solve's pupil terms (axial shift and lateral offset) if they reduce
+    """The non-central solve's pupil terms (axial shift, lateral offset, pivot) if they reduce
     the corners' residuals by more than noise would (`nested_f_test` against the central
     optimum, q = 2 per free pair), else `solve_held(start)`: the solve with them held at
     zero (at run time: the same compiled program; the central optimum is its start), and

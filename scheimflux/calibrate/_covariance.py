@@ -46,6 +46,7 @@ _UNITS = {
     "camera.dy": "mm",
     "camera.pupil": "mm",
     "camera.lateral": "mm",
+    "camera.pivot": "mm",
     "camera.alpha": "px",
     "camera.beta": "px",
     "camera.gamma": "px",

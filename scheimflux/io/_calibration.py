@@ -30,9 +30,10 @@
 
 The non-central thick lens (`"model": "thick-lens-noncentral"`) has the thick lens's
 parameters, `c1`, `c2` (mm): the entrance pupil's shift along the axis,
-`c1 ρ² + c2 ρ⁴`, and `ax`, `ay` (mm): the ray origin's lateral offset (see
-`ThickLensNonCentral`; files without `ax`, `ay` load with 0). The pinhole model (paper eq. 14) has
-`alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
+`c1 ρ² + c2 ρ⁴`, `ax`, `ay` (mm): the ray origin's lateral offset, and `b1`, `b2` (mm):
+the origin's further shift `b1 ρ² + b2 ρ⁴` about the in-focus point (see
+`ThickLensNonCentral`; files without `ax`, `ay` or `b1`, `b2` load them as 0). The
+pinhole model (paper eq. 14) has `alpha`, `beta`, `gamma`, `x0`, `y0` (px) and
 `"distortion": {"model": "none"}`. OpenCV's model (`"model": "opencv"`, equal to
 `cv2.projectPoints`) has `fx`, `fy`, `cx`, `cy` (px), `tau_x`, `tau_y` (deg: the sensor
 tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4", "k5",

@@ -36,7 +36,8 @@ CAMERA_PARAMETERS = {
         ("dy", "mm"),
     ),
     # the thick lens, the entrance pupil's shift along the axis, c1 ρ² + c2 ρ⁴ (mm), and
-    # the ray origin's lateral offset ax, ay (mm; optional on reading, 0 when absent)
+    # the ray origin's lateral offset ax, ay and its pivot shift b1 ρ² + b2 ρ⁴ (mm;
+    # optional on reading, 0 when absent)
     "thick-lens-noncentral": (
         ("f", "mm"),
         ("e", "mm"),
@@ -51,6 +52,8 @@ CAMERA_PARAMETERS = {
         ("c2", "mm"),
         ("ax", "mm"),
         ("ay", "mm"),
+        ("b1", "mm"),
+        ("b2", "mm"),
     ),
     "pinhole": (("alpha", "px"), ("beta", "px"), ("gamma", "px"), ("x0", "px"), ("y0", "px")),
     "opencv": (
@@ -204,7 +207,7 @@ def _parameter(d, name: str, unit: str, where: str) -> float:
 
 #: Camera parameters a file may leave out (added after files were written without them):
 #: the non-central lens's lateral offset, 0 when absent.
-_OPTIONAL_CAMERA = frozenset({"ax", "ay"})
+_OPTIONAL_CAMERA = frozenset({"ax", "ay", "b1", "b2"})
 
 
 def _camera(doc: dict, model: str):
@@ -229,6 +232,7 @@ def _camera(doc: dict, model: str):
     if model == "thick-lens-noncentral":
         values["pupil"] = (values.pop("c1"), values.pop("c2"))
         values["lateral"] = (values.pop("ax", 0.0), values.pop("ay", 0.0))
+        values["pivot"] = (values.pop("b1", 0.0), values.pop("b2", 0.0))
     return _CAMERA_CLASSES[model](**values, distortion=dist), dname
 
 
