@@ -318,18 +318,12 @@ def calibrate_camera(
             start = SystemParams(
                 ThickLensNonCentral.from_central(central.params.camera), central.params.board_poses
             )
-            fit = least_squares(
-                camera_residuals, start, data, freeze=freeze, max_steps=max_steps, throw=throw
-            )
-            if _noncentral_free(freeze):
 
-                def solve_held(p):
-                    return least_squares(camera_residuals, p, data, freeze=freeze,
-                                         hold=_noncentral_free(freeze), max_steps=max_steps,
-                                         throw=throw)  # fmt: skip
+            def solve(p, hold, throw=throw):
+                return least_squares(camera_residuals, p, data, freeze=freeze, hold=hold,
+                                     max_steps=max_steps, throw=throw)  # fmt: skip
 
-                fit, freeze, notes = _pupil_kept_if_significant(central, fit, start, freeze,
-                                                                solve_held)  # fmt: skip
+            fit, freeze, notes = _noncentral_terms_tested(central, start, freeze, solve)
         rms = _rms_px(fit.params, data)
         notes = f_note + notes
         return CameraCalibration(
@@ -480,10 +474,11 @@ def _check_gauge(gauge, model, distortion, freeze) -> None:
         )
 
 
-#: The non-central camera's terms beyond the central thick lens: the pupil's axial shift
-#: (c1, c2), the origin's lateral offset (ax, ay) and its pivot shift (b1, b2), tested
-#: and held together.
-NONCENTRAL_TERMS = ("camera.pupil", "camera.lateral", "camera.pivot")
+#: The non-central camera's terms beyond the central thick lens, in the order they are
+#: tested: the ray's slide along the axis (c1, c2) with the origin's lateral offset
+#: (ax, ay), then the pivot shift (b1, b2) on top of them.
+NONCENTRAL_STAGES = (("camera.pupil", "camera.lateral"), ("camera.pivot",))
+NONCENTRAL_TERMS = tuple(t for stage in NONCENTRAL_STAGES for t in stage)
 
 
 def _noncentral_free(freeze) -> tuple[str, ...]:
@@ -491,29 +486,55 @@ def _noncentral_free(freeze) -> tuple[str, ...]:
     return tuple(t for t in NONCENTRAL_TERMS if t not in freeze)
 
 
-def _pupil_kept_if_significant(central, fit, start, freeze, solve_held):
-    """The non-central solve's pupil terms (axial shift, lateral offset, pivot) if they reduce
-    the corners' residuals by more than noise would (`nested_f_test` against the central
-    optimum, q = 2 per free pair), else `solve_held(start)`: the solve with them held at
-    zero (at run time: the same compiled program; the central optimum is its start), and
-    them added to the frozen set.
+def _noncentral_terms_tested(central, start, freeze, solve):
+    """The non-central solve with each stage of terms (`NONCENTRAL_STAGES`) kept only if it
+    reduces the corners' residuals by more than noise would (`nested_f_test`, q = 2 per
+    free pair, against the model without it).
+
+    `solve(params, hold, throw=...)` runs the camera solve with the non-central terms in
+    `hold` held at their values in `params` (at run time: one compiled program).
+    `central` is the central optimum, `start` the non-central camera at it (every term 0).
+    First the slide and the lateral offset (the pivot held at 0) against the central
+    optimum: not significant, every term is held at 0 (the central optimum, re-solved
+    with them held). Then the pivot terms from that optimum, against it: not
+    significant, or their solve does not converge in its step limit (where the lens is
+    nearly central they are nearly collinear with the slide), they are held at 0 and
+    the first stage's fit stands.
 
     **Returns:** `(fit, freeze, notes)`; `notes` says what was decided and why.
     """
-    free = _noncentral_free(freeze)
-    test = nested_f_test(2.0 * central.cost, 2.0 * fit.cost, fit.n_observations,
-                         len(fit.labels), 2 * len(free))  # fmt: skip
+    first = tuple(t for t in NONCENTRAL_STAGES[0] if t not in freeze)
+    pivot = tuple(t for t in NONCENTRAL_STAGES[1] if t not in freeze)
+    fit = solve(start, pivot)
+    notes = ()
+    if first:
+        test = nested_f_test(2.0 * central.cost, 2.0 * fit.cost, fit.n_observations,
+                             len(fit.labels), 2 * len(first))  # fmt: skip
+        stat = f"F = {test.f:.3g}, p = {test.p_value:.2g}"
+        if not test.significant:
+            held = solve(start, first + pivot)
+            note = (
+                f"pupil terms held at 0: the non-central fit of the corners is not "
+                f"significantly better than the central one ({stat}, level {test.alpha:g}); "
+                "the lens is central to the data's precision"
+            )
+            return held, tuple(freeze) + first + pivot, (note,)
+        notes = (f"pupil terms kept: they reduce the corners' residuals significantly "
+                 f"({stat})",)  # fmt: skip
+    if not pivot:
+        return fit, tuple(freeze), notes
+    turned = solve(fit.params, (), throw=False)
+    if not turned.converged:
+        return fit, tuple(freeze) + pivot, notes + (
+            "pivot terms held at 0: their solve did not converge in its step limit",)
+    test = nested_f_test(2.0 * fit.cost, 2.0 * turned.cost, turned.n_observations,
+                         len(turned.labels), 2 * len(pivot))  # fmt: skip
     stat = f"F = {test.f:.3g}, p = {test.p_value:.2g}"
     if test.significant:
-        return fit, freeze, (f"pupil terms kept: they reduce the corners' residuals "
-                             f"significantly ({stat})",)  # fmt: skip
-    held = solve_held(start)
-    note = (
-        f"pupil terms held at 0: the non-central fit of the corners is not significantly "
-        f"better than the central one ({stat}, level {test.alpha:g}); the lens is central "
-        "to the data's precision"
-    )
-    return held, tuple(freeze) + free, (note,)
+        return turned, tuple(freeze), notes + (
+            f"pivot terms kept: they reduce the corners' residuals significantly ({stat})",)
+    return fit, tuple(freeze) + pivot, notes + (
+        f"pivot terms held at 0: not significant ({stat}, level {test.alpha:g})",)
 
 
 def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibration:
@@ -547,9 +568,8 @@ def _profiled(params, data, how, obs, model, max_steps, throw) -> CameraCalibrat
         central = fit
         start = SystemParams(ThickLensNonCentral.from_central(fit.params.camera),
                              fit.params.board_poses)  # fmt: skip
-        fit = solve(start)
-        fit, freeze, notes = _pupil_kept_if_significant(
-            central, fit, start, freeze, lambda p: solve(p, AXIS_POINT + NONCENTRAL_TERMS)
+        fit, freeze, notes = _noncentral_terms_tested(
+            central, start, freeze, lambda p, hold, throw=False: solve(p, AXIS_POINT + hold)
         )
     if throw and not fit.converged:
         raise NotConvergedError(f"Levenberg–Marquardt did not converge: {fit.message}", fit)

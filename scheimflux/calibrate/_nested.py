@@ -20,8 +20,9 @@ argument): with `x = d / (d + q f)` and `a = d / 2`,
     P(F > f) = x^a · Σ_{j < q/2} [Γ(a + j) / (Γ(a) j!)] (1 − x)^j,
 
 which for q = 2 is `(1 + 2 f / d)^(−d/2)`. The non-central camera tests its axial pupil
-terms (`c1`, `c2`), its lateral offset (`ax`, `ay`) and its pivot terms (`b1`, `b2`)
-together: q = 6 (2 less for each pair a user froze).
+terms (`c1`, `c2`) and its lateral offset (`ax`, `ay`) together against the central
+optimum (q = 4; q = 2 where a user froze one pair), then, where those are kept, its
+pivot terms (`b1`, `b2`) against that optimum (q = 2).
 """
 
 from __future__ import annotations
