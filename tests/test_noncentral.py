@@ -123,6 +123,17 @@ def test_zero_lateral_offset_is_the_axial_pupil_model():
     np.testing.assert_allclose(cam.project(jnp.asarray(X)), expected, rtol=0, atol=1e-9)
 
 
+def _field_and_in_focus_point(c, uv):
+    """ρ² of the pixels' undistorted untilted coordinates and their in-focus points
+    (Newton's formula: the central camera's homogeneous pixel → object map applied to
+    the undistorted pixel), computed here step by step from the central camera."""
+    xi_u, ok = jax.vmap(lambda p: c._undistort(c._untilted(c.sensor_point(p))))(uv)
+    assert bool(jnp.all(ok))
+    uv_u = jax.vmap(c._sensor_pixel)(xi_u)
+    Ph = jax.vmap(lambda p: c.pixel_to_object_matrix() @ jnp.append(p, 1.0))(uv_u)
+    return np.sum(np.asarray(xi_u) ** 2, axis=1), np.asarray(Ph[:, :3] / Ph[:, 3:])
+
+
 def test_lateral_offset_rays_pass_the_offset_centre_and_the_in_focus_point():
     # Independent geometry: each ray starts at (ax, ay, Δz(ρ²)) and passes through the
     # pixel's in-focus point (Newton's formula on the central camera's undistorted
@@ -133,15 +144,11 @@ def test_lateral_offset_rays_pass_the_offset_centre_and_the_in_focus_point():
     c = cam.central
     uv = _pixels(20, seed=4)
     ray = cam.backproject(uv)
-    xi_u, ok = jax.vmap(lambda p: c._undistort(c._untilted(c.sensor_point(p))))(uv)
-    assert bool(jnp.all(ok))
-    r2 = np.sum(np.asarray(xi_u) ** 2, axis=1)
+    r2, P = _field_and_in_focus_point(c, uv)
     s = 0.08 * r2 - 0.05 * r2**2
     np.testing.assert_array_equal(np.asarray(ray.origin[:, :2]), np.broadcast_to(a, (20, 2)))
     np.testing.assert_allclose(ray.origin[:, 2], s, rtol=1e-12)
-    uv_u = jax.vmap(c._sensor_pixel)(xi_u)
-    Ph = jax.vmap(lambda p: c.pixel_to_object_matrix() @ jnp.append(p, 1.0))(uv_u)
-    P = np.asarray(Ph[:, :3] / Ph[:, 3:]) + np.stack([0 * s, 0 * s, s], axis=1)
+    P = P + np.stack([0 * s, 0 * s, s], axis=1)
     d = P - np.asarray(ray.origin)
     miss = np.linalg.norm(np.cross(d, np.asarray(ray.direction)), axis=1)
     assert miss.max() < 1e-12, miss.max()
@@ -163,15 +170,11 @@ def test_pivot_rays_turn_about_the_shifted_in_focus_point():
     c = cam.central
     uv = _pixels(20, seed=6)
     ray = cam.backproject(uv)
-    xi_u, ok = jax.vmap(lambda p: c._undistort(c._untilted(c.sensor_point(p))))(uv)
-    assert bool(jnp.all(ok))
-    r2 = np.sum(np.asarray(xi_u) ** 2, axis=1)
+    r2, P = _field_and_in_focus_point(c, uv)
     dz, dp = 0.08 * r2 - 0.05 * r2**2, b[0] * r2 + b[1] * r2**2
     np.testing.assert_array_equal(np.asarray(ray.origin[:, :2]), np.broadcast_to(a, (20, 2)))
     np.testing.assert_allclose(ray.origin[:, 2], dz + dp, rtol=1e-12)
-    uv_u = jax.vmap(c._sensor_pixel)(xi_u)
-    Ph = jax.vmap(lambda p: c.pixel_to_object_matrix() @ jnp.append(p, 1.0))(uv_u)
-    P = np.asarray(Ph[:, :3] / Ph[:, 3:]) + np.stack([0 * dz, 0 * dz, dz], axis=1)
+    P = P + np.stack([0 * dz, 0 * dz, dz], axis=1)
     d = P - np.asarray(ray.origin)
     miss = np.linalg.norm(np.cross(d, np.asarray(ray.direction)), axis=1)
     assert miss.max() < 1e-12, miss.max()

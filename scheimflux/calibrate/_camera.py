@@ -478,12 +478,6 @@ def _check_gauge(gauge, model, distortion, freeze) -> None:
 #: tested: the ray's slide along the axis (c1, c2) with the origin's lateral offset
 #: (ax, ay), then the pivot shift (b1, b2) on top of them.
 NONCENTRAL_STAGES = (("camera.pupil", "camera.lateral"), ("camera.pivot",))
-NONCENTRAL_TERMS = tuple(t for stage in NONCENTRAL_STAGES for t in stage)
-
-
-def _noncentral_free(freeze) -> tuple[str, ...]:
-    """The non-central terms the user did not freeze."""
-    return tuple(t for t in NONCENTRAL_TERMS if t not in freeze)
 
 
 def _noncentral_terms_tested(central, start, freeze, solve):

@@ -71,8 +71,6 @@ _SHIFT_STEPS = 6
 # whose fixed point did not contract (it would be off by ≥ the contraction factor).
 _SHIFT_TOL = {jnp.dtype(jnp.float64): 1e-12, jnp.dtype(jnp.float32): 1e-5}
 
-PUPIL_TERMS = ("c1", "c2")
-PIVOT_TERMS = ("b1", "b2")
 
 
 class ThickLensNonCentral(AbstractCamera):
@@ -188,11 +186,6 @@ class ThickLensNonCentral(AbstractCamera):
     @property
     def is_distorted(self) -> bool:
         return not isinstance(self.distortion, NoDistortion)
-
-    def pupil_shift(self, xi_u: Float[Array, "2"]) -> Float[Array, ""]:
-        """`Δz(ρ²) = c1 ρ² + c2 ρ⁴` (mm) at the undistorted untilted coordinate `ξ_u`."""
-        r2 = jnp.sum(xi_u * xi_u)
-        return r2 * (self.pupil[0] + self.pupil[1] * r2)
 
     def shifts(self, xi_u: Float[Array, "2"]) -> Float[Array, "2"]:
         """`(Δz, Δp)` (mm): the ray's slide along the axis and the origin's further
