@@ -470,6 +470,7 @@ def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
     assert nc.reprojection_rms_px < 0.7 * central.reprojection_rms_px
     # The pivot terms are kept by their F-test and take the vignetted field's bias: the
     # bound leaves 60 % room over the measured 0.044 µm and fails without them (0.104).
+    # (With the nominal tilt released where the data reject it: 0.031 µm, next test.)
     assert "camera.pivot" not in nc.freeze
     assert any("pivot terms kept" in w for w in nc.quality.warnings), nc.quality.warnings
     assert e_nc < 0.07, e_nc
@@ -585,3 +586,82 @@ def test_without_the_vignetted_field_the_noncentral_model_is_far_below_opencv():
     assert e_nc < 0.03, e_nc
     assert e_nc < 0.3 * e_cv, (e_nc, e_cv)
     assert nc.reprojection_rms_px < 0.0011, nc.reprojection_rms_px
+
+
+def test_a_solve_stopped_at_its_step_limit_is_continued_while_it_improves():
+    # `_continued` re-runs a solve from its last iterate: a stand-in solve that needs
+    # 450 steps at 200 per call converges on the third call; one that stops improving is
+    # not run again; the whole run's steps and initial cost are reported.
+    import dataclasses
+
+    from scheimflux.calibrate._camera import CONTINUATIONS, _continued
+
+    @dataclasses.dataclass(frozen=True)
+    class Run:
+        params: float
+        converged: bool
+        steps: int
+        cost: float
+        initial_cost: float
+
+    calls = []
+
+    def solve(needed, stall=False):
+        def run(done):
+            calls.append(done)
+            steps = min(200, needed - done)
+            end = done + steps
+            cost = 1.0 if stall else 1.0 / (1 + end)
+            return Run(end, end >= needed, steps, cost, 1.0 / (1 + done))
+        return run
+
+    assert CONTINUATIONS == 2
+    fit = _continued(solve(450), 0)
+    assert fit.converged and fit.steps == 450 and fit.params == 450
+    assert fit.initial_cost == 1.0 and calls == [0, 200, 400]
+    calls.clear()
+    fit = _continued(solve(1000), 0)  # still at the limit after three calls
+    assert not fit.converged and fit.steps == 600 and calls == [0, 200, 400]
+    calls.clear()
+    fit = _continued(solve(1000, stall=True), 0)  # no lower cost: not continued twice
+    assert fit.steps == 200 and calls == [0, 200]
+
+
+# slow: ~1 min of pupil tracing and 3 calibrations (3-6 min) on a loaded 2-core machine
+@pytest.mark.slow
+def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances():
+    # Issue 16's gauge target for the non-central model: the benchmark's noise-free
+    # Tessar ×0.5 scene (pupil centroids), calibrated with the nominal tilt the rig
+    # rounds to (-16°) and 1° either side. With it held, distances moved by 0.03-0.08 µm
+    # (docs/noncentral.md); released where the data reject it (an F-test), the solves
+    # reach the same optimum and the reconstructed laser-plane distances agree.
+    import dataclasses
+
+    from scheimflux.calibrate import calibrate
+
+    rig, sampling, obs = _tessar_centroid_scene()
+    X, uv = _covered_laser_grid(rig, obs, sampling)
+    nominal = obs.nominal.tilt_deg
+    assert nominal == (0.0, -16.0), nominal
+    i, j = np.triu_indices(len(X), 1)
+    dists, errs = [], []
+    for theta in (-16.0, -15.0, -17.0):
+        o = dataclasses.replace(obs, nominal=dataclasses.replace(obs.nominal,
+                                                                 tilt_deg=(0.0, theta)))
+        cal = calibrate(o, model="thick-lens-noncentral", throw=False)
+        assert all(f.converged for f in cal.fits.values())
+        assert "camera.theta" not in cal.freeze and "camera.phi" not in cal.freeze
+        note = "phi, theta released with the non-central terms"
+        assert any(note in w for w in cal.quality.warnings), cal.quality.warnings
+        P = np.asarray(sf.stripe_to_camera(cal.camera, cal.plane, jnp.asarray(uv)).points)
+        dists.append(np.linalg.norm(P[i] - P[j], axis=1))
+        errs.append(_grid_distance_rms_um(cal, X, uv))
+    change = [float(np.sqrt(np.mean((d - dists[0]) ** 2)) * 1e3) for d in dists[1:]]
+    print(f"{len(X)} points: errors {errs} um; change of distances at -15, -17 deg: "
+          f"{change} um")  # fmt: skip
+    # The target is 0.005 µm. Measured (2026-12-05, 154 points): 4e-12 µm at -15° and
+    # -17° (the -17° start needed the continued solves: 241 and 306 LM steps), every
+    # error 0.0311 µm against 0.044 µm with the tilt held at -16°. The same optimum is
+    # reached from each start, so what is left is where the solves stopped.
+    assert max(change) <= 0.005, change
+    assert max(errs) < 0.04, errs  # held at -16°: 0.044 µm
