@@ -632,7 +632,7 @@ def test_a_solve_stopped_at_its_step_limit_is_continued_while_it_improves():
 def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances():
     # Issue 16's gauge target for the non-central model: the benchmark's noise-free
     # Tessar ×0.5 scene (pupil centroids), calibrated with the nominal tilt the rig
-    # rounds to (-16°) and 1° either side. With it held, distances moved by 0.03-0.08 µm
+    # rounds to (-16°) and 1° either side. With it held, distances moved by 0.06-0.07 µm
     # (docs/noncentral.md); released where the data reject it (an F-test), the solves
     # reach the same optimum and the reconstructed laser-plane distances agree.
     import dataclasses
@@ -665,3 +665,56 @@ def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances()
     # reached from each start, so what is left is where the solves stopped.
     assert max(change) <= 0.005, change
     assert max(errs) < 0.04, errs  # held at -16°: 0.044 µm
+
+
+def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged(monkeypatch):
+    # `_nominal_gauge_released`'s decisions, with the solve replaced by stand-ins: the
+    # released solve frees what the default held (the tilt for a nominal start, the
+    # axis point for a closed-form one) and nothing else; a refused or unconverged
+    # release keeps the held fit and frozen set, each with a note saying why.
+    import dataclasses
+    import importlib
+
+    from scheimflux.calibrate._gauge import ideal_freeze
+    from scheimflux.calibrate._solve import RankDeficientError
+
+    cam = importlib.import_module("scheimflux.calibrate._camera")
+
+    @dataclasses.dataclass(frozen=True)
+    class Run:
+        params: str
+        converged: bool
+        cost: float
+        steps: int = 10
+        initial_cost: float = 1.0
+        n_observations: int = 1000
+        labels: tuple = ("a",) * 20
+
+    held = Run("held", True, 0.6)
+    seen = []
+
+    def with_solve(result):
+        def least_squares(fn, params, data, freeze=(), **kw):
+            seen.append(tuple(freeze))
+            if isinstance(result, Exception):
+                raise result
+            return result
+        monkeypatch.setattr(cam, "least_squares", least_squares)
+
+    extra = ("camera.pupil",)
+    for how, names in (("nominal", "phi, theta"), ("closed-form", "x0, y0")):
+        freeze = ideal_freeze(how) + extra
+        with_solve(Run("free", True, 0.5))
+        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
+        assert fit.params == "free" and note.startswith(f"{names} released"), note
+        assert out == ("camera.dx", "camera.dy", "camera.f") + extra == seen[-1]
+        assert "F = " in note
+        with_solve(Run("stuck", False, 0.5))  # three calls at the step limit
+        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
+        assert fit is held and out == freeze and "did not converge" in note, note
+        with_solve(RankDeficientError("the data do not determine camera.x0"))
+        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
+        assert fit is held and out == freeze and "determine camera.x0" in note, note
+    released = ("camera.dx", "camera.dy", "camera.f")  # nothing held to release
+    fit, out, note = cam._nominal_gauge_released(held, released, None, 200)
+    assert fit is held and out == released

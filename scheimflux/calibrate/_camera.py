@@ -569,10 +569,10 @@ def _nominal_gauge_released(fit, freeze, data, max_steps):
     With distortion the tilt and the axis point are determined (weakly, `_gauge`), and
     where the lens is far from central the rounded nominal tilt biases what is measured.
     Measured on the benchmark's pupil-integrated 8 mm Tessar at ×0.5 (docs/noncentral.md):
-    noise-free, a nominal tilt off by ±1° moved pairwise distances by 0.03–0.08 µm with
+    noise-free, a nominal tilt off by ±1° moved pairwise distances by 0.06–0.07 µm with
     it held and by 4e-12 µm released (the error 0.044 → 0.031 µm; 0.045 → 0.008 µm with
     the lens's vignetting removed); with 0.03/0.05 px noise (7 seeds) released was
-    better on 5 seeds, mean square 0.056 against 0.057 µm. Called only where the
+    better on 5 seeds, RMS over them 0.056 against 0.057 µm. Called only where the
     non-central terms were kept; for a lens the F-tests find central the held gauge's
     smaller variance wins (section 1 of docs/noncentral.md). The released solve starts
     at the held optimum with the tilt and the axis point free and the pixel pitch and f
