@@ -470,7 +470,8 @@ def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
     assert nc.reprojection_rms_px < 0.7 * central.reprojection_rms_px
     # The pivot terms are kept by their F-test and take the vignetted field's bias: the
     # bound leaves 60 % room over the measured 0.044 µm and fails without them (0.104).
-    # (With the nominal tilt released where the data reject it: 0.031 µm, next test.)
+    # (With the nominal tilt then released: 0.031 µm, measured in
+    # test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances.)
     assert "camera.pivot" not in nc.freeze
     assert any("pivot terms kept" in w for w in nc.quality.warnings), nc.quality.warnings
     assert e_nc < 0.07, e_nc
@@ -633,7 +634,7 @@ def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances()
     # Issue 16's gauge target for the non-central model: the benchmark's noise-free
     # Tessar ×0.5 scene (pupil centroids), calibrated with the nominal tilt the rig
     # rounds to (-16°) and 1° either side. With it held, distances moved by 0.06-0.07 µm
-    # (docs/noncentral.md); released where the data reject it (an F-test), the solves
+    # (docs/noncentral.md); released once the non-central terms are kept, the solves
     # reach the same optimum and the reconstructed laser-plane distances agree.
     import dataclasses
 
@@ -709,7 +710,7 @@ def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged(monkeypatc
         assert fit.params == "free" and note.startswith(f"{names} released"), note
         assert out == ("camera.dx", "camera.dy", "camera.f") + extra == seen[-1]
         assert "F = " in note
-        with_solve(Run("stuck", False, 0.5))  # three calls at the step limit
+        with_solve(Run("stuck", False, 0.5))  # at its step limit, continuing gains nothing
         fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
         assert fit is held and out == freeze and "did not converge" in note, note
         with_solve(RankDeficientError("the data do not determine camera.x0"))
