@@ -668,18 +668,16 @@ def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances()
     assert max(errs) < 0.04, errs  # held at -16°: 0.044 µm
 
 
-def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged(monkeypatch):
-    # `_nominal_gauge_released`'s decisions, with the solve replaced by stand-ins: the
-    # released solve frees what the default held (the tilt for a nominal start, the
-    # axis point for a closed-form one) and nothing else; a refused or unconverged
-    # release keeps the held fit and frozen set, each with a note saying why.
+def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged():
+    # `_nominal_gauge_released`'s decisions, with the solve replaced by stand-ins: a
+    # converged release returns its fit and the frozen set without the gauge (the tilt
+    # for a nominal start, the axis point for a closed-form one); a refused or
+    # unconverged release keeps the held fit and frozen set, each with a note saying why.
     import dataclasses
-    import importlib
 
-    from scheimflux.calibrate._gauge import ideal_freeze
+    from scheimflux.calibrate._camera import _nominal_gauge_released
+    from scheimflux.calibrate._gauge import distorted_freeze, ideal_freeze
     from scheimflux.calibrate._solve import RankDeficientError
-
-    cam = importlib.import_module("scheimflux.calibrate._camera")
 
     @dataclasses.dataclass(frozen=True)
     class Run:
@@ -692,30 +690,31 @@ def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged(monkeypatc
         labels: tuple = ("a",) * 20
 
     held = Run("held", True, 0.6)
-    seen = []
 
-    def with_solve(result):
-        def least_squares(fn, params, data, freeze=(), **kw):
-            seen.append(tuple(freeze))
+    starts = []
+
+    def solve_giving(result):
+        def solve(params):
+            starts.append(params)
             if isinstance(result, Exception):
                 raise result
             return result
-        monkeypatch.setattr(cam, "least_squares", least_squares)
+        return solve
 
-    extra = ("camera.pupil",)
+    extra = ("camera.pivot",)  # a term the F-tests held stays frozen
     for how, names in (("nominal", "phi, theta"), ("closed-form", "x0, y0")):
         freeze = ideal_freeze(how) + extra
-        with_solve(Run("free", True, 0.5))
-        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
-        assert fit.params == "free" and note.startswith(f"{names} released"), note
-        assert out == ("camera.dx", "camera.dy", "camera.f") + extra == seen[-1]
-        assert "F = " in note
-        with_solve(Run("stuck", False, 0.5))  # at its step limit, continuing gains nothing
-        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
+        released = distorted_freeze(freeze)
+        assert released == ("camera.dx", "camera.dy", "camera.f") + extra
+        fit, out, note = _nominal_gauge_released(held, freeze, released,
+                                                 solve_giving(Run("free", True, 0.5)))
+        assert fit.params == "free" and out == released, (fit, out)
+        assert note.startswith(f"{names} released") and "F = " in note, note
+        stuck = solve_giving(Run("stuck", False, 0.5))  # continuing it gains nothing
+        fit, out, note = _nominal_gauge_released(held, freeze, released, stuck)
         assert fit is held and out == freeze and "did not converge" in note, note
-        with_solve(RankDeficientError("the data do not determine camera.x0"))
-        fit, out, note = cam._nominal_gauge_released(held, freeze, None, 200)
+        refused = solve_giving(RankDeficientError("the data do not determine camera.x0"))
+        fit, out, note = _nominal_gauge_released(held, freeze, released, refused)
         assert fit is held and out == freeze and "determine camera.x0" in note, note
-    released = ("camera.dx", "camera.dy", "camera.f")  # nothing held to release
-    fit, out, note = cam._nominal_gauge_released(held, released, None, 200)
-    assert fit is held and out == released
+    # every release started from the held optimum (the stuck one continued from its end)
+    assert starts == ["held", "held", "stuck", "held"] * 2, starts

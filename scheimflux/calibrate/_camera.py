@@ -324,13 +324,28 @@ def calibrate_camera(
                 ThickLensNonCentral.from_central(central.params.camera), central.params.board_poses
             )
 
-            def solve(p, hold, throw=throw):
-                return least_squares(camera_residuals, p, data, freeze=freeze, hold=hold,
+            # With the default frozen set the held gauge (tilt or axis point) is held at
+            # run time, so that its release (`_nominal_gauge_released`) runs the same
+            # compiled program as the tested stages.
+            released = freeze
+            if defaulted and distortion != "none":
+                released = distorted_freeze(tuple(freeze))
+            gauge = tuple(p for p in freeze if p not in released)
+
+            def run(p, hold, throw=throw):
+                return least_squares(camera_residuals, p, data, freeze=released, hold=hold,
                                      max_steps=max_steps, throw=throw)  # fmt: skip
 
+            def solve(p, hold, throw=throw):
+                return run(p, gauge + tuple(hold), throw)
+
             fit, freeze, notes = _noncentral_terms_tested(central, start, freeze, solve)
-            if defaulted and distortion != "none" and "camera.pupil" not in freeze:
-                fit, freeze, note = _nominal_gauge_released(fit, freeze, data, max_steps)
+            if gauge and "camera.pupil" not in freeze:
+                kept = tuple(p for p in freeze if p not in gauge)
+                held = tuple(p for p in kept if p not in released)  # terms the tests held
+                fit, freeze, note = _nominal_gauge_released(
+                    fit, freeze, kept, lambda p: run(p, held, throw=False)
+                )
                 notes += (note,)
         rms = _rms_px(fit.params, data)
         notes = f_note + notes
@@ -562,7 +577,7 @@ def _continued(solve, params):
     return fit
 
 
-def _nominal_gauge_released(fit, freeze, data, max_steps):
+def _nominal_gauge_released(fit, freeze, released, solve):
     """The non-central solve with the nominal gauge (the tilt held at its nominal value,
     or the axis point at the sensor centre) released.
 
@@ -578,18 +593,17 @@ def _nominal_gauge_released(fit, freeze, data, max_steps):
     at the held optimum with the tilt and the axis point free and the pixel pitch and f
     held (`distorted_freeze`); if it is refused or does not converge, the held fit stays.
 
+    `freeze` is the held fit's frozen set, `released` that set without the gauge, and
+    `solve(params)` the solve with `released` frozen and nothing held (the program the
+    held fit ran with the gauge held at run time).
+
     **Returns:** `(fit, freeze, note)`; the note carries the F statistic of the release
     against the held gauge (how strongly the data reject the nominal value).
     """
-    released = distorted_freeze(tuple(freeze))
     names = [p.split(".")[-1] for p in freeze if p not in released]
-    if not names:
-        return fit, freeze, "nominal gauge: nothing held to release"
     what = ", ".join(names)
     try:
-        free = _continued(lambda p: least_squares(camera_residuals, p, data, freeze=released,
-                                                  max_steps=max_steps, throw=False),
-                          fit.params)  # fmt: skip
+        free = _continued(solve, fit.params)
     except RankDeficientError as err:
         return fit, freeze, f"{what} held at the nominal value: with them released {err}"
     if not free.converged:
