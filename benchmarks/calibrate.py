@@ -42,8 +42,8 @@ import time
 
 import numpy as np
 
-from scheimflux.calibrate import calibrate, calibrate_camera
-from scheimflux.calibrate._compare import opencv_calibrate, opencv_plane_rms_um
+from scheimflux.calibration import calibrate, calibrate_camera
+from scheimflux.calibration.core._compare import opencv_calibrate, opencv_plane_rms_um
 from scheimflux.reconstruct._reconstruct import stripe_to_camera, stripe_to_measurement
 from scheimflux.simulate import gauge_scan, paper_rig, simulate_observations
 from scheimflux.targets._board import Checkerboard
@@ -138,9 +138,8 @@ def _profile(path: str) -> None:
     time of a second, compiled `calibrate`. Prints one JSON line."""
     import jax
 
-    from scheimflux.calibrate import trust_entries
+    from scheimflux.calibration import calibration_to_dict, trust_entries
     from scheimflux.io import read_observations
-    from scheimflux.io._calibration import calibration_to_dict
 
     per = collections.defaultdict(lambda: dict(trace=0.0, lower=0.0, xla=0.0, n=0, traces=0))
     second_traces = collections.Counter()

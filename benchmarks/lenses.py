@@ -49,7 +49,7 @@ import time
 import cv2
 import numpy as np
 
-from scheimflux.calibrate import calibrate
+from scheimflux.calibration import calibrate
 from scheimflux.io import read_observations, write_observations
 from scheimflux.io._observations import within_radius
 from scheimflux.reconstruct._reconstruct import stripe_to_camera
@@ -137,7 +137,7 @@ RELEASED_TILT = "thick-lens-noncentral/released-tilt"
 def _released_tilt():
     import importlib
 
-    from scheimflux.calibrate._gauge import distorted_freeze
+    from scheimflux.calibration.core._gauge import distorted_freeze
     from scheimflux.camera import ThickLensNonCentral
 
     mods = [importlib.import_module(f"scheimflux.calibrate.{m}") for m in ("_camera", "_calibrate")]

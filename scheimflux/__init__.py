@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import importlib
 import sys
-import types
 from typing import TYPE_CHECKING
 
 from . import _cache
@@ -27,6 +26,7 @@ _cache.enable_compilation_cache()
 
 # Public name → home module (relative to this package). Subpackages map to themselves.
 _SUBPACKAGES = (
+    "calibration",
     "camera",
     "capture",
     "export",
@@ -43,13 +43,13 @@ _NAMES = {
     "paper_pinhole": "_presets",
     "paper_stage": "_presets",
     "paper_thick_lens": "_presets",
-    "Calibration": "calibrate",
-    "calibrate": "calibrate",
-    "calibrate_camera": "calibrate",
-    "calibrate_stage": "calibrate",
-    "cross_validate": "calibrate",
-    "diagnostics": "calibrate",
-    "fit_laser_plane": "calibrate",
+    "Calibration": "calibration",
+    "calibrate": "calibration",
+    "calibrate_camera": "calibration",
+    "calibrate_stage": "calibration",
+    "cross_validate": "calibration",
+    "diagnostics": "calibration",
+    "fit_laser_plane": "calibration",
     "AbstractCamera": "camera",
     "Pinhole": "camera",
     "Ray": "camera",
@@ -58,9 +58,9 @@ _NAMES = {
     "Pose": "geometry",
     "RotaryStage": "geometry",
     "Observations": "io",
-    "read_calibration": "io",
+    "read_calibration": "calibration",
     "read_observations": "io",
-    "write_calibration": "io",
+    "write_calibration": "calibration",
     "write_observations": "io",
     "write_points": "io",
     "Reconstruction": "reconstruct",
@@ -103,40 +103,9 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
-class _Scheimflux(types.ModuleType):
-    """This package's module type: `sf.calibrate` stays the function.
-
-    Importing the subpackage `scheimflux.calibrate` (from anywhere, at any time) makes the
-    import system set this package's attribute `calibrate` to the subpackage. The property
-    below ignores that one assignment, so `sf.calibrate(obs)` works whatever was imported
-    first; `from scheimflux.calibrate import X` goes through `sys.modules` as usual. Any
-    other assignment (a test's monkeypatch) is kept. See docs/api.md.
-    """
-
-    @property
-    def calibrate(self):
-        override = self.__dict__.get("_calibrate_override")
-        if override is not None:
-            return override
-        from .calibrate._calibrate import calibrate
-
-        return calibrate
-
-    @calibrate.setter
-    def calibrate(self, value) -> None:
-        if value is sys.modules.get(f"{__name__}.calibrate"):
-            return  # the import system binding the subpackage
-        self.__dict__["_calibrate_override"] = value
-
-    @calibrate.deleter
-    def calibrate(self) -> None:
-        self.__dict__.pop("_calibrate_override", None)
-
-
-sys.modules[__name__].__class__ = _Scheimflux
-
 if TYPE_CHECKING:  # what a type checker and an IDE see; never run
     from . import (
+        calibration as calibration,
         camera as camera,
         capture as capture,
         export as export,
@@ -154,7 +123,7 @@ if TYPE_CHECKING:  # what a type checker and an IDE see; never run
         paper_stage as paper_stage,
         paper_thick_lens as paper_thick_lens,
     )
-    from .calibrate import (
+    from .calibration import (
         Calibration as Calibration,
         calibrate as calibrate,
         calibrate_camera as calibrate_camera,
@@ -162,6 +131,8 @@ if TYPE_CHECKING:  # what a type checker and an IDE see; never run
         cross_validate as cross_validate,
         diagnostics as diagnostics,
         fit_laser_plane as fit_laser_plane,
+        read_calibration as read_calibration,
+        write_calibration as write_calibration,
     )
     from .camera import (
         AbstractCamera as AbstractCamera,
@@ -172,9 +143,7 @@ if TYPE_CHECKING:  # what a type checker and an IDE see; never run
     from .geometry import LaserPlane as LaserPlane, Pose as Pose, RotaryStage as RotaryStage
     from .io import (
         Observations as Observations,
-        read_calibration as read_calibration,
         read_observations as read_observations,
-        write_calibration as write_calibration,
         write_observations as write_observations,
         write_points as write_points,
     )

@@ -45,9 +45,9 @@ def run_demo(
 
     **Returns:** the summary dict (also written to `out/summary.json`).
     """
-    from .calibrate import calibrate
+    from .calibration import calibrate
+    from .calibration._file import write_calibration
     from .geometry._fitting import aligned_distances
-    from .io._calibration import write_calibration
     from .io._files import write_json
     from .io._observations import write_observations
     from .io._pointcloud import write_ply

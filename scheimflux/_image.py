@@ -6,6 +6,9 @@ import os
 
 import numpy as np
 
+# The file name endings read as images (any case), by every command that reads a folder.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+
 
 def read_image(path) -> np.ndarray | None:
     """An image file as stored: `(H, W)` grey or `(H, W, 3)` BGR (alpha dropped), 8 or

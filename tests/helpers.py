@@ -45,7 +45,7 @@ def ar1_noise(rng, shape, rho):
 def former_fit_covariance(fit):
     """`max(1, s²) (JᵀJ)⁺` of a solve, as fit_diagnostics stated it before it counted the
     correlation of neighbouring centres (same operations: bit-for-bit)."""
-    from scheimflux.calibrate._solve import RANK_RTOL
+    from scheimflux.calibration.core._solve import RANK_RTOL
 
     H = np.asarray(fit.normal_matrix, dtype=np.float64)
     d = np.sqrt(np.clip(np.diag(H), 0.0, None))

@@ -1,8 +1,9 @@
-"""The public spelling: `sf.calibrate(obs)` is the function, `scheimflux.calibrate` stays the
-subpackage for `from scheimflux.calibrate import X`, and the main entry points document
-every argument."""
+"""The public spelling: `sf.calibrate(obs)` is the function and `scheimflux.calibration` the
+subpackage (no name is both), every subpackage declares `__all__` and only re-exports, and
+the main entry points document every argument."""
 
 import ast
+import importlib
 import inspect
 import pathlib
 import re
@@ -11,41 +12,31 @@ import sys
 import types
 
 import scheimflux as sf
-from scheimflux.calibrate._calibrate import calibrate as _calibrate_impl
+from scheimflux.calibration._calibrate import calibrate as _calibrate_impl
 
 ROOT = pathlib.Path(sf.__file__).parent
 
 
-def test_sf_calibrate_is_the_function_and_the_subpackage_stays_importable():
-    calibrate_pkg = sys.modules["scheimflux.calibrate"]
-    assert isinstance(calibrate_pkg, types.ModuleType)
-    assert sf.calibrate is _calibrate_impl is calibrate_pkg.calibrate
-    assert sf.diagnostics is calibrate_pkg.diagnostics  # both entry points are functions
+def test_sf_calibrate_is_the_function_and_calibration_the_subpackage():
+    calibration = importlib.import_module("scheimflux.calibration")
+    assert isinstance(sf.calibration, types.ModuleType) and sf.calibration is calibration
+    assert isinstance(sf.calibrate, types.FunctionType)
+    assert sf.calibrate is _calibrate_impl is calibration.calibrate
+    assert sf.diagnostics is calibration.diagnostics  # both entry points are functions
     for name in ("calibrate_camera", "fit_laser_plane", "calibrate_stage", "cross_validate"):
-        assert getattr(sf, name) is getattr(calibrate_pkg, name)
-
-
-def test_import_statement_spelling():
-    # `import scheimflux.calibrate as m` binds the function (Python takes the parent's
-    # attribute): the subpackage is reached by `from scheimflux.calibrate import X`,
-    # `importlib.import_module` or `sys.modules` (docs/api.md).
-    import importlib
-
-    import scheimflux.calibrate as m
-
-    assert m is sf.calibrate
-    assert importlib.import_module("scheimflux.calibrate") is sys.modules["scheimflux.calibrate"]
+        assert getattr(sf, name) is getattr(calibration, name)
+    # the package's module is a plain module: no class swapped in to keep a name apart
+    assert type(sf) is types.ModuleType
 
 
 def test_sf_calibrate_does_not_depend_on_import_order():
-    # A subpackage imported first must not leave `sf.calibrate` the module (the trap of a
-    # lazily bound function: the import system sets the parent's attribute to the module).
+    # importing the subpackages first leaves `sf.calibrate` the function
     code = (
-        "from scheimflux.calibrate import calibrate_camera, Calibration\n"
-        "import scheimflux.calibrate._stage\n"
+        "from scheimflux.calibration import calibrate_camera, Calibration\n"
+        "import scheimflux.calibration.core._stage\n"
         "import scheimflux as sf, types\n"
         "assert isinstance(sf.calibrate, types.FunctionType), type(sf.calibrate)\n"
-        "assert sf.calibrate.__module__ == 'scheimflux.calibrate._calibrate'\n"
+        "assert sf.calibrate.__module__ == 'scheimflux.calibration._calibrate'\n"
         "assert calibrate_camera is sf.calibrate_camera\n"
         "print('ok')\n"
     )
@@ -55,13 +46,34 @@ def test_sf_calibrate_does_not_depend_on_import_order():
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
 
 
-def test_calibrate_init_only_re_exports():
-    tree = ast.parse((ROOT / "calibrate" / "__init__.py").read_text())
-    body = tree.body[1:] if isinstance(tree.body[0], ast.Expr) else tree.body
-    for node in body:
-        assert isinstance(node, ast.ImportFrom) and node.level == 1, ast.dump(node)[:80]
-        for alias in node.names:
-            assert alias.asname == alias.name, alias.name  # `from ._x import y as y`
+def _subpackages() -> list[pathlib.Path]:
+    return sorted(p for p in ROOT.rglob("__init__.py") if p.parent != ROOT)
+
+
+def test_subpackage_inits_only_re_export():
+    for path in _subpackages():
+        tree = ast.parse(path.read_text())
+        body = tree.body[1:] if isinstance(tree.body[0], ast.Expr) else tree.body
+        for node in body:
+            if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["__all__"]:
+                continue
+            assert isinstance(node, ast.ImportFrom) and node.level >= 1, (
+                f"{path}: {ast.dump(node)[:80]}"
+            )
+            for alias in node.names:
+                assert alias.asname == alias.name, f"{path}: {alias.name}"  # `y as y`
+
+
+def test_every_subpackage_declares_all_of_its_public_names():
+    for path in _subpackages():
+        name = ".".join(path.parent.relative_to(ROOT.parent).parts)
+        module = importlib.import_module(name)
+        assert hasattr(module, "__all__"), f"{name} has no __all__"
+        public = {n for n in vars(module) if not n.startswith("_")}
+        public -= {m for m in public if isinstance(getattr(module, m), types.ModuleType)}
+        assert sorted(module.__all__) == sorted(public), name
+        for n in module.__all__:
+            assert hasattr(module, n), f"{name}.__all__ names {n}, which it does not have"
 
 
 ENTRY_POINTS = (

@@ -97,7 +97,7 @@ def small_obs():
 def _camera_solve(obs):
     """The camera solve with distortion (two LM solves, one program), as a flat vector
     of the solved camera and board poses."""
-    from scheimflux.calibrate import calibrate_camera
+    from scheimflux.calibration import calibrate_camera
 
     global _counts
     _counts = {}
@@ -171,7 +171,7 @@ traces = []
 jax.monitoring.register_event_duration_secs_listener(
     lambda e, d, **kw: traces.append(str(kw.get("fun_name")))
     if e == "/jax/core/compile/jaxpr_trace_duration" else None)
-from scheimflux.calibrate import calibrate_camera
+from scheimflux.calibration import calibrate_camera
 from scheimflux.io import read_observations
 cc = calibrate_camera(read_observations(sys.argv[1]))
 x = np.concatenate([np.ravel(np.asarray(a)) for a in jax.tree.leaves((cc.camera, cc.poses))])
@@ -207,7 +207,7 @@ def test_export_mechanism(tmp_path, monkeypatch, caplog):
     import logging
 
     from scheimflux import _export
-    from scheimflux.calibrate._lm import _sum_squares
+    from scheimflux.calibration.core._lm import _sum_squares
 
     monkeypatch.setenv("SCHEIMFLUX_CACHE_DIR", str(tmp_path))
     program = _export.exported_jit(_sum_squares)
@@ -253,7 +253,7 @@ def test_export_falls_back_to_tracing(tmp_path, monkeypatch):
     # what has no stable identity is not exported: a lambda among the static leaves, a
     # function of another package; the result is the traced program's
     from scheimflux import _export
-    from scheimflux.calibrate._lm import _sum_squares
+    from scheimflux.calibration.core._lm import _sum_squares
 
     monkeypatch.setenv("SCHEIMFLUX_CACHE_DIR", str(tmp_path))
 

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import (
+from scheimflux.calibration import (
     calibrate,
     calibrate_camera,
     camera_plane_residuals,
     refine,
 )
-from scheimflux.calibrate._init import nominal_thick_lens
+from scheimflux.calibration.core._init import nominal_thick_lens
 from scheimflux.io import Nominal, Observations, View
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
@@ -240,8 +240,8 @@ def test_a_wrong_nominal_tilt_is_named_in_the_error(tilt):
     tilt the boards show (the closed-form start's: the truth is (2.87, 13.31)°)."""
     import dataclasses
 
-    from scheimflux.calibrate import NotConvergedError, RankDeficientError, calibrate_camera
-    from scheimflux.calibrate._camera import _tilt_disagreement
+    from scheimflux.calibration import NotConvergedError, RankDeficientError, calibrate_camera
+    from scheimflux.calibration.core._camera import _tilt_disagreement
 
     obs, _ = simulate_observations(
         paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=4, stage_scan=False, seed=0
@@ -273,8 +273,8 @@ def test_an_undetermined_principal_point_is_named_as_that():
     capture (0.0386 px, distances 0.084 µm RMS). A swapped nominal tilt leaves the
     same direction (test_a_wrong_nominal_tilt_is_named_in_the_error): where the
     closed-form tilt disagrees, its hint comes first and this one after it."""
-    from scheimflux.calibrate import RankDeficientError
-    from scheimflux.calibrate._camera import (
+    from scheimflux.calibration import RankDeficientError
+    from scheimflux.calibration.core._camera import (
         _nominal_tilt_checked,
         _principal_point_hint,
         _principal_point_null,
@@ -308,7 +308,7 @@ def test_a_nominal_tilt_4_deg_off_is_named_where_the_joint_solve_stops():
     error leads with the tilt."""
     import dataclasses
 
-    from scheimflux.calibrate import RankDeficientError, calibrate
+    from scheimflux.calibration import RankDeficientError, calibrate
 
     obs, _ = simulate_observations(
         paper_rig(refine=False), Checkerboard(6, 5, 0.4), n_views=4, stage_scan=False, seed=0
@@ -320,7 +320,7 @@ def test_a_nominal_tilt_4_deg_off_is_named_where_the_joint_solve_stops():
 
 def test_gate_hints_are_joined_and_functions_run():
     """`_gated`'s hints: strings and functions (run only when a gate failed), joined."""
-    from scheimflux.calibrate._quality import _hint_text
+    from scheimflux.calibration.trust._quality import _hint_text
 
     assert _hint_text(None) is None and _hint_text((None, lambda: None)) is None
     assert _hint_text((lambda: "a", None, "b")) == "a; b" and _hint_text("c") == "c"
@@ -333,7 +333,7 @@ def test_closed_form_start_takes_the_tilt_not_its_mirror():
     steps at (−32.6, −50.7)°, 0.058 px (the corners' noise is 0.03 px). The ideal camera
     is solved from both signs and the lower cost kept; the nominal-tilt hint reads the
     same, so a right nominal tilt is not called wrong (it was, with the mirror)."""
-    from scheimflux.calibrate._camera import _tilt_disagreement
+    from scheimflux.calibration.core._camera import _tilt_disagreement
     from scheimflux.simulate._lens import resolve_lens
     from scheimflux.simulate._rig import build_rig
 

@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._model import SystemParams, corner_errors_px, make_data
-from scheimflux.calibrate._solve import ONE_SHOT, free_spec, split
-from scheimflux.calibrate._stage_warning import _gradients, reference_pixels
+from scheimflux.calibration.core._model import SystemParams, corner_errors_px, make_data
+from scheimflux.calibration.core._solve import ONE_SHOT, free_spec, split
+from scheimflux.calibration.trust._stage_warning import _gradients, reference_pixels
 from scheimflux.camera import ThickLensScheimpflug
 from scheimflux.geometry import LaserPlane, RotaryStage
 from scheimflux.geometry._transforms import Pose
@@ -105,7 +105,7 @@ def _toy_problem(V, K, seed):
 def test_least_squares_compiles_only_solver_programs_per_shape():
     """A solve of a new shape lowers the solver's programs and nothing else: the host-side
     work is NumPy (an eager jax.numpy call would be one more program per shape)."""
-    from scheimflux.calibrate._solve import _split_host, least_squares
+    from scheimflux.calibration.core._solve import _split_host, least_squares
 
     fn, _, start, data = _toy_problem(4, 6, 5)
     least_squares(fn, start, data, blocks="board_poses")  # shape-independent programs

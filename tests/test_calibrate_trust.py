@@ -13,7 +13,7 @@ import re
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import (
+from scheimflux.calibration import (
     QualityError,
     RankDeficientError,
     calibrate,
@@ -93,7 +93,7 @@ def test_left_out_observations_come_back_from_the_file(scene, tmp_path):
     # The file records what the rejection pass left out; read back with the same
     # observations, the residual arrays (screened, weighted, without the outliers) are
     # those the calibration was solved on, so diagnostics agree.
-    from scheimflux.io import read_calibration, write_calibration
+    from scheimflux.calibration import read_calibration, write_calibration
 
     contaminated = _contaminated(scene[0])
     cal = calibrate(contaminated, distortion="none")
@@ -144,7 +144,7 @@ def test_plane_line_states_the_joint_sigma_beside_the_points_noise_alone(clean):
     camera and board poses exact (0.003 µm offset on a tessar x1 capture, where the joint
     solve's covariance of plane.n gives 7 µm): it now states both, the joint one
     propagated from plane.n's covariance (checked by sampling n from it)."""
-    from scheimflux.calibrate import format_trust
+    from scheimflux.calibration import format_trust
 
     d = fit_diagnostics(clean)
     line = next(x for x in format_trust(clean).splitlines() if x.startswith("laser plane"))
@@ -230,7 +230,7 @@ def test_freeze_stage_parameters(tmp_path):
     obs, _ = simulate_observations(
         rig, Checkerboard(6, 5, 0.4), n_views=4, n_frames=6, delta_omega_deg=45.0, seed=1
     )
-    from scheimflux.calibrate import DEFAULT_FREEZE
+    from scheimflux.calibration import DEFAULT_FREEZE
 
     freeze = (*DEFAULT_FREEZE[("thick-lens", "nominal")], "stage.R_m_c")
     cal = calibrate(obs, distortion="none", freeze=freeze, throw=False)
@@ -266,7 +266,7 @@ def test_free_spec_accepts_stage_paths():
     import jax.numpy as jnp
 
     import scheimflux as sf
-    from scheimflux.calibrate import SystemParams, free_spec
+    from scheimflux.calibration import SystemParams, free_spec
     from scheimflux.geometry import LaserPlane, Pose, RotaryStage
 
     cam = sf.ThickLensScheimpflug(97.0, -2.4, 249.5, 0.05, 0.23, 796.2, 594.0, 0.0044, 0.0044)
@@ -361,7 +361,7 @@ def test_a_field_radius_leaves_the_outer_field_out_and_counts_it(scene, inside_r
 
 def test_a_field_radius_comes_back_from_the_file(scene, inside_radius, tmp_path):
     # read back with the full observations, the residual arrays are those solved on
-    from scheimflux.io import read_calibration, write_calibration
+    from scheimflux.calibration import read_calibration, write_calibration
 
     path = tmp_path / "cal.json"
     write_calibration(path, inside_radius)
@@ -435,7 +435,7 @@ def test_correlated_neighbouring_centres_are_named(clean):
     independent centres, so such residuals are named with √τ. AR(1) rows with ρ = 0.8
     (τ = 1 + 2 Σ 0.8ᵏ = 9, estimated from 20 × 300 residuals to ~0.01 in ρ₁) are; white
     rows and the ray-traced scene's own residuals (independent noise) are not."""
-    from scheimflux.calibrate._quality import correlated_centres_warning
+    from scheimflux.calibration.trust._quality import correlated_centres_warning
 
     rng = np.random.default_rng(4)
     rows, n, rho = 20, 300, 0.8
@@ -461,7 +461,7 @@ def test_counted_correlation_warning_states_the_tau_of_the_sigma():
     capture said tau = 9.3 on the σ line and tau = 9.03 in the warning)."""
     from helpers import ar1_noise
 
-    from scheimflux.calibrate._quality import correlated_centres_warning
+    from scheimflux.calibration.trust._quality import correlated_centres_warning
 
     ar = ar1_noise(np.random.default_rng(4), (20, 300), 0.8)
     blocks = [("board stripes", ar, np.ones(ar.shape, bool))]
@@ -500,8 +500,8 @@ def test_sigma_count_correlated_centres_and_nothing_else_changes(correlated, cle
     absorbs), and the warning, the file and the summary say that the σ include it."""
     from helpers import former_fit_covariance
 
-    from scheimflux.calibrate import calibration_summary, trust_entries
-    from scheimflux.calibrate._uncertainty import correlated_groups
+    from scheimflux.calibration import calibration_summary, trust_entries
+    from scheimflux.calibration.trust import correlated_groups
 
     d = fit_diagnostics(clean)
     assert d.correlation_time == {} and correlated_groups(clean) is None
@@ -540,8 +540,12 @@ def test_a_calibration_read_back_states_the_same_uncertainties(correlated, tmp_p
     correlated stripe centres counted, and so `length_uncertainty` and `point_uncertainty`.
     `point_uncertainty` states that covariance by default (it used `diagnostics`, which
     neither floors s² at 1 nor counts the correlation: σ too small by √τ and 1/s)."""
-    from scheimflux.calibrate import length_uncertainty, point_uncertainty
-    from scheimflux.io import read_calibration, write_calibration
+    from scheimflux.calibration import (
+        length_uncertainty,
+        point_uncertainty,
+        read_calibration,
+        write_calibration,
+    )
 
     cal, obs = correlated
     path = tmp_path / "cal.json"
@@ -578,19 +582,22 @@ def test_a_read_back_calibration_linearises_its_joint_problem_once(
 ):
     """Its `fit_diagnostics` (every call: the file keeps no JᵀJ), the correlated-centres
     covariance and `measure`'s group covariance share one Jacobian of the joint residuals
-    per solve (`_uncertainty.joint_linearisation`); they computed it on every call."""
-    from scheimflux.calibrate import _uncertainty, length_uncertainty, point_uncertainty
-    from scheimflux.io import read_calibration, write_calibration
+    per solve (`_calcov.joint_linearisation`); they computed it on every call."""
+    from scheimflux.calibration import (
+        length_uncertainty,
+        point_uncertainty,
+        read_calibration,
+        write_calibration,
+    )
+    from scheimflux.calibration.trust import _calcov  # private: the cache is the invariant
     from scheimflux.metrology import group_covariance
 
     cal, obs = correlated
     write_calibration(tmp_path / "cal.json", cal)
     loaded = read_calibration(tmp_path / "cal.json", observations=obs)
     calls = []
-    real = _uncertainty.linearised
-    monkeypatch.setattr(
-        _uncertainty, "linearised", lambda *a, **k: calls.append(1) or real(*a, **k)
-    )
+    real = _calcov.linearised
+    monkeypatch.setattr(_calcov, "linearised", lambda *a, **k: calls.append(1) or real(*a, **k))
     first = fit_diagnostics(loaded)
     uv = np.concatenate([v.stripe_px for v in obs.views])[:20]
     point_uncertainty(loaded, uv)
@@ -599,5 +606,5 @@ def test_a_read_back_calibration_linearises_its_joint_problem_once(
     group_covariance(loaded)
     assert len(calls) == 1
     np.testing.assert_array_equal(again.covariance, first.covariance)
-    r, J, gains = _uncertainty.joint_linearisation(loaded)
+    r, J, gains = _calcov.joint_linearisation(loaded)
     assert not (r.flags.writeable or J.flags.writeable or gains.flags.writeable)

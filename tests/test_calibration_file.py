@@ -1,6 +1,7 @@
 """The calibration file: round trip to 1e-12, validation messages, no clobbering."""
 
 import copy
+import dataclasses
 import functools
 import json
 import math
@@ -11,7 +12,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import SystemParams
+from scheimflux.calibration import (
+    Calibration,
+    MissingObservations,
+    SystemParams,
+    calibration_to_dict,
+    parse_calibration,
+    read_calibration,
+    write_calibration,
+)
 from scheimflux.camera import (
     Division,
     OpenCVCamera,
@@ -20,19 +29,13 @@ from scheimflux.camera import (
     ThickLensScheimpflug,
 )
 from scheimflux.geometry import LaserPlane, Pose, RotaryStage
-from scheimflux.io._calibration import (
-    FORMAT,
-    calibration_to_dict,
-    parse_calibration,
-    read_calibration,
-    write_calibration,
-)
+from scheimflux.io._calibration import FORMAT
 from scheimflux.reconstruct import stripe_to_camera, stripe_to_measurement
 
 
 def _fit(steps=7, converged=True):
-    # duck-typed stand-ins: the writer reads attributes only (Fit/Calibration are
-    # type-checked and need real solver output)
+    # a duck-typed stand-in for a solve: the writer reads its attributes only (Fit is
+    # type-checked and needs real solver output)
     return SimpleNamespace(
         converged=converged,
         message="" if converged else "nonlinear max steps reached",
@@ -43,6 +46,7 @@ def _fit(steps=7, converged=True):
         time_s=1.25,
         free_mask=None,
         scale=None,
+        stats=None,
     )
 
 
@@ -88,7 +92,7 @@ def make_calibration(camera, *, stage=True, model="thick-lens", distortion="none
     fits = {"camera": _fit(12), "joint": _fit(5)}
     if stage:
         fits["stage"] = _fit(9)
-    return SimpleNamespace(
+    return Calibration(
         params=params,
         model=model,
         distortion=distortion,
@@ -102,7 +106,7 @@ def make_calibration(camera, *, stage=True, model="thick-lens", distortion="none
         reprojection_rms_px=0.031,
         plane_rms_mm=0.0012,
         gauge_rms_mm=0.0009 if stage else None,
-        data=None,
+        data=MissingObservations("the test's calibration"),
         sensor_size=(1600, 1200),
     )
 
@@ -225,7 +229,7 @@ def test_file_layout_units_and_degrees(tmp_path):
 def test_unconverged_solve_is_recorded():
     cal = make_calibration(_thick_lens())
     fits = dict(cal.fits, joint=_fit(300, converged=False))
-    cal = SimpleNamespace(**{**vars(cal), "fits": fits})
+    cal = dataclasses.replace(cal, fits=fits)
     d = calibration_to_dict(cal)["diagnostics"]
     assert d["converged"] is False
     assert d["solves"]["joint"]["converged"] is False
@@ -381,12 +385,8 @@ def test_camera_only_file_has_no_plane():
     cal = make_calibration(
         OpenCVCamera(3000.0, 3000.0, 800.0, 600.0), stage=False, model="opencv", distortion="opencv"
     )
-    cal = SimpleNamespace(
-        **{
-            **vars(cal),
-            "params": SystemParams(cal.params.camera, cal.params.board_poses),
-            "plane_rms_mm": None,
-        }
+    cal = dataclasses.replace(
+        cal, params=SystemParams(cal.params.camera, cal.params.board_poses), plane_rms_mm=None
     )
     doc = calibration_to_dict(cal)
     assert "laser_plane" not in doc
@@ -397,10 +397,9 @@ def test_camera_only_file_has_no_plane():
 
 def test_loaded_is_a_calibration_and_says_what_it_needs():
     import scheimflux as sf
-    from scheimflux.io import LoadedCalibration
 
     loaded = parse_calibration(_good(), source="cal.json")
-    assert isinstance(loaded, LoadedCalibration) and isinstance(loaded, sf.Calibration)
+    assert type(loaded) is sf.Calibration  # one type, computed or read back
     assert loaded.init == "nominal" and loaded.joint and loaded.converged
     assert loaded.freeze == ("camera.dx", "camera.dy", "camera.f")
     assert set(loaded.fits) == {"camera", "stage", "joint"}
@@ -417,7 +416,7 @@ def test_unconverged_file_warns_when_read(tmp_path):
     from scheimflux.io import UnconvergedCalibrationWarning
 
     cal = make_calibration(_thick_lens())
-    cal = SimpleNamespace(**{**vars(cal), "fits": dict(cal.fits, joint=_fit(300, False))})
+    cal = dataclasses.replace(cal, fits=dict(cal.fits, joint=_fit(300, False)))
     path = tmp_path / "cal.json"
     write_calibration(path, cal)  # writing does not warn (filterwarnings = error)
     with pytest.warns(UnconvergedCalibrationWarning, match=r"did NOT converge \(solves: joint\)"):

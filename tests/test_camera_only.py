@@ -14,13 +14,11 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import calibrate, diagnostics
+from scheimflux.calibration import calibrate, diagnostics, read_calibration, write_calibration
 from scheimflux.cli import main
 from scheimflux.io import (
     Observations,
     View,
-    read_calibration,
-    write_calibration,
     write_observations,
 )
 
@@ -181,7 +179,7 @@ def test_stage_scan_without_board_stripes_is_refused():
 def test_cli_camera_only_notes_it(camera_only, tmp_path, capsys, monkeypatch):
     obs, cal = camera_only
     # the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
-    calibrate_module = importlib.import_module("scheimflux.calibrate")
+    calibrate_module = importlib.import_module("scheimflux.calibration")
 
     monkeypatch.setattr(calibrate_module, "calibrate", lambda o, **kw: cal)
     src = tmp_path / "obs.json"

@@ -668,8 +668,8 @@ def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
     import shutil
 
     # the package namespace the CLI imports `calibrate` from (`sf.calibrate` is the
-    # function, so `import scheimflux.calibrate as m` would not give the package)
-    calibrate_module = importlib.import_module("scheimflux.calibrate")
+    # function, so `import scheimflux.calibration as m` would not give the package)
+    calibrate_module = importlib.import_module("scheimflux.calibration")
 
     board = CharucoBoard(8, 6, 0.2, 0.14)
     rig, truth, corners = _scene(cam, board, rots=(183.0, 188.0, 178.0))
@@ -729,7 +729,7 @@ def test_mixed_folder_detect_then_calibrate(cam, tmp_path, capsys, monkeypatch):
 def test_partly_visible_charuco_detect_calibrate(tmp_path, capsys):
     """15 ray-traced poses of a ChArUco board, some partly outside the image, rendered
     (pair layout) → `detect` → `calibrate` with default options."""
-    from scheimflux.io._calibration import read_calibration
+    from scheimflux.calibration import read_calibration
     from scheimflux.simulate import paper_rig, simulate_observations
 
     rig = paper_rig(refine=False)
@@ -848,7 +848,7 @@ def end_to_end(tmp_path, target_name, layout_name, *, n_views=15, seed=5, argv_m
     """Render, `detect`, `calibrate` (real CLI, real files) and measure against truth.
 
     **Returns:** a dict of the numbers the docs table records."""
-    from scheimflux.io._calibration import read_calibration
+    from scheimflux.calibration import read_calibration
     from scheimflux.simulate import paper_rig, simulate_observations
 
     run = argv_main or main

@@ -16,7 +16,8 @@ import pytest
 from test_render_board import _focus_pose
 
 import scheimflux as sf
-from scheimflux.calibrate._model import board_images_px, circle_ring
+from scheimflux.calibration.core._blocks import circle_ring
+from scheimflux.calibration.core._model import board_images_px
 from scheimflux.io._observations import (
     ObservationsError,
     observations_to_dict,
@@ -110,7 +111,7 @@ def test_circle_centroid_jit_equals_eager_and_has_finite_gradients():
 
 
 def test_a_disc_seen_edge_on_falls_back_to_the_mean_of_its_outline():
-    from scheimflux.calibrate._model import _polygon_centroid
+    from scheimflux.calibration.core._blocks import _polygon_centroid
 
     line = jnp.asarray(np.c_[np.linspace(0.0, 3.0, 16), np.full(16, 2.0)] + 1000.0)
     got = np.asarray(_polygon_centroid(line))
@@ -160,7 +161,7 @@ def test_simulated_circle_grid_is_what_opencv_measures_in_the_rendered_image(tes
 def test_calibration_data_of_a_circle_grid_predicts_centroids(tessar_scene):
     # the residual arrays built from circle-grid observations carry the outline, and the
     # corner errors are the modelled centroids minus the observed points
-    from scheimflux.calibrate._model import SystemParams, corner_errors_px, make_data
+    from scheimflux.calibration.core._model import SystemParams, corner_errors_px, make_data
 
     _, grid, obs, truth = tessar_scene
     data = make_data(obs)
@@ -200,7 +201,7 @@ def test_modelled_centroids_calibrate_closer_to_the_ray_traced_truth():
     # measured 0.018 against 0.033 um RMS (seed 4); asserted below 0.75 of it.
     import dataclasses
 
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
     from scheimflux.simulate import build_rig
     from scheimflux.simulate._lens import load_lens
     from scheimflux.simulate._observe import simulate_observations
@@ -233,8 +234,8 @@ def test_a_circle_grid_on_the_table_is_modelled_like_the_boards():
     # composed pose of each table step; and the file keeps the table target's diameter.
     import types
 
-    from scheimflux.calibrate._model import SystemParams
-    from scheimflux.calibrate._stage_table import (
+    from scheimflux.calibration.core._model import SystemParams
+    from scheimflux.calibration.core._table_block import (
         table_points_c,
         table_target_data,
         table_target_errors_px,

@@ -15,20 +15,19 @@ import numpy as np
 import pytest
 from test_calibration_file import _fit, _thick_lens, make_calibration
 
+from scheimflux.calibration import read_calibration, write_calibration
 from scheimflux.cli import main
 from scheimflux.io import (
     Observations,
     View,
-    read_calibration,
     read_ply,
-    write_calibration,
     write_observations,
     write_stripes,
 )
 from scheimflux.reconstruct import Status, stripe_to_camera, stripe_to_measurement
 
 # the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
-calibrate_module = importlib.import_module("scheimflux.calibrate")
+calibrate_module = importlib.import_module("scheimflux.calibration")
 
 
 def _observations(stage=True) -> Observations:

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from helpers import ar1_noise, former_fit_covariance
 
-from scheimflux.calibrate import calibrate, fit_diagnostics
-from scheimflux.calibrate._uncertainty import raise_covariance
+from scheimflux.calibration import calibrate, fit_diagnostics
+from scheimflux.calibration.trust import raise_covariance
+from scheimflux.calibration.trust._calcov import residual_lag_correlation, sandwich_covariance
 from scheimflux.io import View
-from scheimflux.metrology._calcov import residual_lag_correlation, sandwich_covariance
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
 

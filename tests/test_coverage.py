@@ -7,17 +7,18 @@ import math
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate, diagnostics, trust_entries
-from scheimflux.calibrate._coverage import Coverage, count_outside, coverage_of
-from scheimflux.calibrate._summary import format_trust
-from scheimflux.io import View, write_observations, write_stripes
-from scheimflux.io._calibration import (
-    CalibrationFileError,
+from scheimflux.calibration import (
+    calibrate,
     calibration_to_dict,
+    diagnostics,
     parse_calibration,
     read_calibration,
+    trust_entries,
     write_calibration,
 )
+from scheimflux.calibration.trust._summary import format_trust
+from scheimflux.geometry._coverage import Coverage, count_outside, coverage_of
+from scheimflux.io import CalibrationFileError, View, write_observations, write_stripes
 from scheimflux.reconstruct import stripe_to_camera
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
@@ -189,7 +190,7 @@ def test_file_with_coverage_round_trips_and_bad_coverage_is_refused():
     cal, _ = _doc_without_coverage()
     cov = coverage_of([_square(300, 200, 600)], [np.zeros((0, 2))], cal.sensor_size,
                       margin_px=12)
-    cal.coverage = cov
+    cal = dataclasses.replace(cal, coverage=cov)
     doc = calibration_to_dict(cal)
     back = parse_calibration(json.loads(json.dumps(doc)))
     assert np.array_equal(back.coverage.grid, cov.grid)

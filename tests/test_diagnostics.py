@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import (
+from scheimflux.calibration import (
     calibrate,
     calibrate_camera,
     compare_with_opencv,
@@ -19,7 +19,7 @@ from scheimflux.calibrate import (
     residual_function,
     residual_map,
 )
-from scheimflux.calibrate._solve import split
+from scheimflux.calibration.core._solve import split
 from scheimflux.io import View
 from scheimflux.reconstruct import stripe_to_camera
 from scheimflux.simulate import paper_rig, simulate_observations
@@ -178,7 +178,7 @@ def _re_solved_points(cal, data, uv, K=60):
     calibration's estimate (one compiled solver for all, same shapes)."""
     import equinox as eqx
 
-    from scheimflux.calibrate import least_squares
+    from scheimflux.calibration import least_squares
 
     _, truth = data
     fn, params, spec = residual_function(cal, "joint")
@@ -317,7 +317,7 @@ def test_distortion_terms_undetermined_one_by_one_are_named():
     # k1 (σ 0.2 > |0.1|) is undetermined alone, k2 (σ 1 < 5) is not; jointly, with
     # z = (0.5, 5) in units of σ and correlation −0.9: chi² = zᵀ R⁻¹ z =
     # (0.25 + 2 · 0.9 · 2.5 + 25) / (1 − 0.81) = 156.6
-    from scheimflux.calibrate._covariance import Diagnostics
+    from scheimflux.calibration.trust._covariance import Diagnostics
 
     std = np.array([0.1, 0.2, 1.0])
     R = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -0.9], [0.0, -0.9, 1.0]])

@@ -4,7 +4,7 @@ import dataclasses
 
 import pytest
 
-from scheimflux.calibrate import calibrate_camera, with_nominal
+from scheimflux.calibration import calibrate_camera, with_nominal
 from scheimflux.simulate import build_rig, load_lens, simulate_observations
 from scheimflux.targets import Checkerboard
 

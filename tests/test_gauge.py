@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import DEFAULT_FREEZE, calibrate_camera, fit_laser_plane, with_nominal
-from scheimflux.calibrate._gauge import (
+from scheimflux.calibration import DEFAULT_FREEZE, calibrate_camera, fit_laser_plane, with_nominal
+from scheimflux.calibration.core._gauge import (
     AXIS_POINT,
     DISTORTED_GAUGE,
     GAUGE_HELD,
@@ -20,8 +20,8 @@ from scheimflux.calibrate._gauge import (
     gauge_spectrum,
     profile_axis_point,
 )
-from scheimflux.calibrate._model import camera_residuals, make_data
-from scheimflux.calibrate._solve import RankDeficientError, Released, _dense, _released
+from scheimflux.calibration.core._model import camera_residuals, make_data
+from scheimflux.calibration.core._solve import RankDeficientError, Released, _dense, _released
 from scheimflux.io import Nominal, Observations, View
 from scheimflux.simulate import build_rig, load_lens, paraxial, simulate_observations
 from scheimflux.targets import Checkerboard
@@ -129,7 +129,7 @@ def test_profile_skips_points_the_data_cannot_determine(monkeypatch):
 
     import importlib
 
-    gauge = importlib.import_module("scheimflux.calibrate._gauge")
+    gauge = importlib.import_module("scheimflux.calibration.core._gauge")
     monkeypatch.setattr(gauge, "_with_axis_point", with_axis)
     fit, prof = profile_axis_point(solve, fit_at((300.0, 900.0)),
                                    bounds=((0.0, 2447.0), (0.0, 2047.0)))  # fmt: skip

@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
+from scheimflux.calibration import read_calibration
 from scheimflux.cli._main import main
 from scheimflux.io import read_observations
-from scheimflux.io._calibration import read_calibration
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.simulate._images import write_scene_images
 from scheimflux.targets._board import Checkerboard

@@ -7,13 +7,13 @@ import lineax as lx
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._linear import (
+from scheimflux.calibration.core._linear import (
     BlockNormalCholesky,
     BlockStructure,
     block_layout,
     detect_rows,
 )
-from scheimflux.calibrate._solve import free_spec, least_squares, split
+from scheimflux.calibration.core._solve import free_spec, least_squares, split
 
 
 def _random_block_jacobian(rng, V=4, ng=3, nl=2, rows_per_block=5, free_rows=3):

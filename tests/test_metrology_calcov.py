@@ -10,8 +10,8 @@ match the spread of the estimates over fresh noise; the pooled `s² (JᵀJ)⁻¹
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._covariance import covariance_from_jacobian
-from scheimflux.metrology._calcov import sandwich_covariance
+from scheimflux.calibration.trust._calcov import sandwich_covariance
+from scheimflux.calibration.trust._covariance import covariance_from_jacobian
 
 DRAWS = 3000
 
@@ -67,9 +67,9 @@ def test_groups_of_a_real_calibration_add_up_and_reduce_to_diagnostics():
     residual vector, their redundancies add up to n − p, the pooled s² is their
     redundancy-weighted mean, and with each group's residuals rescaled to the pooled s²
     the sandwich is `diagnostics`' covariance (same labels, same order)."""
-    from scheimflux.calibrate import calibrate, diagnostics, residual_function
-    from scheimflux.calibrate._model import corner_residuals, stripe_residuals
-    from scheimflux.calibrate._solve import jacobian
+    from scheimflux.calibration import calibrate, diagnostics, residual_function
+    from scheimflux.calibration.core._model import corner_residuals, stripe_residuals
+    from scheimflux.calibration.core._solve import jacobian
     from scheimflux.metrology import group_covariance
     from scheimflux.simulate import paper_rig, simulate_observations
     from scheimflux.targets import Checkerboard
@@ -190,11 +190,11 @@ def test_pixel_noise_gains_are_each_residuals_own_pixel_derivative():
     import jax
     import jax.numpy as jnp
 
-    from scheimflux.calibrate._model import SystemParams, camera_plane_residuals, make_data
+    from scheimflux.calibration.core._model import SystemParams, camera_plane_residuals, make_data
+    from scheimflux.calibration.trust._calcov import pixel_noise_gains
     from scheimflux.camera import ThickLensScheimpflug
     from scheimflux.geometry import LaserPlane
     from scheimflux.geometry._transforms import Pose
-    from scheimflux.metrology._calcov import pixel_noise_gains
     from scheimflux.simulate import paper_rig, simulate_observations
     from scheimflux.targets import Checkerboard
 
@@ -223,7 +223,7 @@ def test_pixel_noise_gains_are_each_residuals_own_pixel_derivative():
     np.testing.assert_allclose(a, dense, rtol=1e-10, atol=1e-12 * dense.max())
     # group_covariance's one program (residuals, Jacobian, gains; compiled without the
     # expensive passes) against the residuals op by op, the Jacobian and the gains above
-    from scheimflux.calibrate._solve import free_spec, jacobian, linearised
+    from scheimflux.calibration.core._solve import free_spec, jacobian, linearised
 
     spec = free_spec(params, ("camera.dx", "camera.dy", "camera.f", "camera.x0", "camera.y0"))
     r, J, a2 = linearised(camera_plane_residuals, params, data, spec, pixel_gains=True)
@@ -243,7 +243,7 @@ def test_correlated_centres_widen_the_covariance_to_the_spread():
     rows taken as independent the sandwich understates the spread of the estimates by
     about τ = 1 + 2 Σ ρ_k; with the lag correlations estimated from the residuals it
     matches it. Independent noise gives no correlation (the covariance unchanged)."""
-    from scheimflux.metrology._calcov import residual_lag_correlation
+    from scheimflux.calibration.trust._calcov import residual_lag_correlation
 
     rng = np.random.default_rng(7)
     n = 2000

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import free_spec, parameter_labels
+from scheimflux.calibration import free_spec, parameter_labels
 from scheimflux.metrology import Steps, chain_function, fit_shape
 from scheimflux.simulate import paper_rig, step_gauge
 

@@ -21,7 +21,7 @@ import os
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate
+from scheimflux.calibration import calibrate
 from scheimflux.io import View
 from scheimflux.metrology import Steps, measure_points, measure_stripes
 from scheimflux.simulate import paper_rig, simulate_observations, step_gauge
@@ -92,7 +92,7 @@ def test_step_and_cylinder_uncertainty_vs_monte_carlo_of_re_calibrations():
     repeat (compiles), 65–225 s for each further one (≈ 1 h for 30); 415 s for all 30 at
     load 2–4 after the calibration programs shrank; 2653 s at load 16–27 with a warm
     compilation cache (docs/metrology.md)."""
-    from scheimflux.calibrate import diagnostics
+    from scheimflux.calibration import diagnostics
     from scheimflux.metrology import Cylinder, group_covariance
     from scheimflux.simulate import BEARING_RADII_MM, gauge_scan
 

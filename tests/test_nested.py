@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._nested import nested_f_test
+from scheimflux.calibration.core._nested import nested_f_test
 
 
 def _rss_pairs(rng, n_trials, n=60, p_reduced=4, extra_coef=(0.0, 0.0)):

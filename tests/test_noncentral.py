@@ -367,7 +367,7 @@ def _distance_rms_um(cal, truth, n=300):
 def test_noncentral_recovers_the_ray_tracer_better_than_the_central_model():
     # Noise-free chief rays traced through the wide landscape lens: the central model's
     # error is model bias (pupil aberration), which the pupil's shift removes.
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
     from scheimflux.simulate import simulate_observations
     from scheimflux.targets import Checkerboard
 
@@ -442,7 +442,7 @@ def test_noncentral_beats_the_central_model_on_pupil_integrated_tessar_data():
     # benchmark's scene (benchmarks/lenses.py), noise-free so that what is left is model
     # bias. Truth: laser-plane points traced by the same pupil-integrating tracer,
     # where the boards cover the image, never the calibrated model's own projections.
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
 
     rig, sampling, obs = _tessar_centroid_scene()
     X, uv = _covered_laser_grid(rig, obs, sampling)
@@ -486,7 +486,7 @@ def test_pupil_terms_held_where_the_lens_is_central_to_the_datas_precision():
     # says so, and is the central model's: the same camera as `model="thick-lens"`.
     # Under the null the test is wrong with probability 1e-3 per data set (the level);
     # this data set is fixed (seed 3).
-    from scheimflux.calibrate import calibrate_camera
+    from scheimflux.calibration import calibrate_camera
     from scheimflux.simulate import paper_rig, simulate_observations
     from scheimflux.targets import Checkerboard
 
@@ -527,8 +527,8 @@ def test_pupil_terms_held_with_the_profile_gauge_too():
     # zero, the calibration says so, and the camera is the central profiled one (the
     # non-central solve with the pupil held starts at the central profile's optimum and
     # holds the same axis point). Judged in units of each parameter's σ, as above.
-    from scheimflux.calibrate import calibrate_camera
-    from scheimflux.calibrate._gauge import AXIS_POINT
+    from scheimflux.calibration import calibrate_camera
+    from scheimflux.calibration.core._gauge import AXIS_POINT
     from scheimflux.simulate import paper_rig, simulate_observations
     from scheimflux.targets import Checkerboard
 
@@ -564,7 +564,7 @@ def test_without_the_vignetted_field_the_noncentral_model_is_far_below_opencv():
     # are clipped and a centroid pixel is not the image of one ray (benchmarks/raxels.py,
     # docs/noncentral.md). Truth: laser-plane points traced by the same pupil-integrating
     # tracer inside the hull of the corners kept.
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
 
     rig, sampling, obs = _tessar_centroid_scene()
     obs = within_radius(obs, 850.0)
@@ -595,7 +595,7 @@ def test_a_solve_stopped_at_its_step_limit_is_continued_while_it_improves():
     # not run again; the whole run's steps and initial cost are reported.
     import dataclasses
 
-    from scheimflux.calibrate._camera import CONTINUATIONS, _continued
+    from scheimflux.calibration.core._camera import CONTINUATIONS, _continued
 
     @dataclasses.dataclass(frozen=True)
     class Run:
@@ -638,7 +638,7 @@ def test_a_nominal_tilt_off_by_a_degree_does_not_move_the_noncentral_distances()
     # reach the same optimum and the reconstructed laser-plane distances agree.
     import dataclasses
 
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
 
     rig, sampling, obs = _tessar_centroid_scene()
     X, uv = _covered_laser_grid(rig, obs, sampling)
@@ -675,9 +675,9 @@ def test_the_nominal_gauge_is_released_only_by_a_solve_that_converged():
     # unconverged release keeps the held fit and frozen set, each with a note saying why.
     import dataclasses
 
-    from scheimflux.calibrate._camera import _nominal_gauge_released
-    from scheimflux.calibrate._gauge import distorted_freeze, ideal_freeze
-    from scheimflux.calibrate._solve import RankDeficientError
+    from scheimflux.calibration.core._camera import _nominal_gauge_released
+    from scheimflux.calibration.core._gauge import distorted_freeze, ideal_freeze
+    from scheimflux.calibration.core._solve import RankDeficientError
 
     @dataclasses.dataclass(frozen=True)
     class Run:

@@ -15,23 +15,23 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import (
+from scheimflux.calibration import (
     calibrate,
     calibrate_camera,
     cv2_calibration_flags,
     diagnostics,
     opencv_frozen,
     point_uncertainty,
+    read_calibration,
     with_nominal,
+    write_calibration,
 )
-from scheimflux.calibrate._opencv import opencv_flags_from_frozen, parse_opencv_flags
+from scheimflux.calibration.core._opencv import opencv_flags_from_frozen, parse_opencv_flags
 from scheimflux.cli import main
 from scheimflux.io import (
     Nominal,
     Observations,
     View,
-    read_calibration,
-    write_calibration,
     write_observations,
 )
 
@@ -130,7 +130,7 @@ def fake(monkeypatch):
     from test_calibration_file import _thick_lens, make_calibration
 
     # the subpackage (`sf.calibrate` is the function): the CLI looks `calibrate` up there
-    calibrate_module = importlib.import_module("scheimflux.calibrate")
+    calibrate_module = importlib.import_module("scheimflux.calibration")
 
     calls = []
 

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate, calibrate_camera
+from scheimflux.calibration import calibrate, calibrate_camera
 from scheimflux.io import View
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard

@@ -367,7 +367,7 @@ def test_cli_counts_pixels_outside_coverage_in_its_one_pass(tmp_path, capsys):
     # the first 20 cells of 8 px, i.e. u < 159.5, a plain threshold on the pixels.
     import cv2
 
-    from scheimflux.calibrate._coverage import Coverage
+    from scheimflux.geometry._coverage import Coverage
     from scheimflux.simulate._render_stripe import render_stripe
 
     grid = np.zeros((SENSOR[1] // 8, SENSOR[0] // 8), bool)

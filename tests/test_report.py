@@ -15,7 +15,7 @@ from scheimflux.io import write_points
 
 
 def _coverage_doc():
-    from scheimflux.calibrate._coverage import coverage_of
+    from scheimflux.geometry._coverage import coverage_of
 
     g = np.linspace(200.0, 900.0, 6)
     corners = np.stack(np.meshgrid(g, g - 100.0), axis=-1).reshape(-1, 2)

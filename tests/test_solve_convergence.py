@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._solve import (
+from scheimflux.calibration.core._solve import (
     AT_OPTIMUM_SIGMA,
     _dense,
     least_squares,

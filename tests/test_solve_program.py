@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate
+from scheimflux.calibration import calibrate
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
 
@@ -132,10 +132,10 @@ def test_joint_residuals_back_project_once():
     # in the program), and the residuals are those of the separate blocks
     import jax.numpy as jnp
 
-    from scheimflux.calibrate._model import (
+    from scheimflux.calibration.core._blocks import _laser_points_safe
+    from scheimflux.calibration.core._model import (
         CalibrationData,
         SystemParams,
-        _laser_points_safe,
         corner_residuals,
         gauge_residuals,
         joint_residuals,
@@ -197,7 +197,7 @@ def test_joint_residuals_back_project_once():
     # back-projection, and its block is the one computed on its own
     import dataclasses
 
-    from scheimflux.calibrate._stage_table import TableTargetData, table_target_residuals
+    from scheimflux.calibration.core._table_block import TableTargetData, table_target_residuals
 
     table = TableTargetData(
         board=data.board, corners=px(F, M), w=jnp.ones((F, M)),

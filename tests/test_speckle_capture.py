@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._calibrate import SIGMA_STRIPE_PX
+from scheimflux.calibration._calibrate import SIGMA_STRIPE_PX
 from scheimflux.capture import detect_captures
 from scheimflux.cli._main import main
 from scheimflux.io import read_observations

@@ -20,9 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import calibrate_stage, initial_stage
-from scheimflux.calibrate._model import _laser_points_safe  # private helpers under test
-from scheimflux.calibrate._stage import _gauge_points
+from scheimflux.calibration import calibrate_stage, initial_stage
+from scheimflux.calibration.core._blocks import _laser_points_safe  # private helpers under test
+from scheimflux.calibration.core._stage import _gauge_points
 from scheimflux.camera import ThickLensScheimpflug
 from scheimflux.geometry import LaserPlane
 from scheimflux.io import Observations, StageScan

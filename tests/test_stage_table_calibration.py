@@ -23,9 +23,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate._model import _laser_points_safe
+from scheimflux.calibration import read_calibration
+from scheimflux.calibration.core._blocks import _laser_points_safe
 from scheimflux.cli._main import main
-from scheimflux.io import StageTargetViews, read_calibration, read_observations
+from scheimflux.io import StageTargetViews, read_observations
 from scheimflux.io._observations import write_observations
 from scheimflux.simulate import (
     default_stage,
@@ -151,7 +152,7 @@ def test_table_target_recovers_the_axis(calibrated, capsys):
 def test_calibration_file_keeps_the_table_target(calibrated):
     rig, stage, cal, path = calibrated
     # read back with its observations: the joint fit is rebuilt with the table block
-    from scheimflux.calibrate._solve import parameter_labels
+    from scheimflux.calibration.core._solve import parameter_labels
 
     fit = cal.fits["joint"]
     labels = parameter_labels(fit.params, fit.free_mask)
@@ -186,8 +187,8 @@ def test_predicted_sigma_matches_monte_carlo_of_re_solves():
     direction 0.0271 vs 0.0304 mrad (1.12), position 25.9 vs 20.8 µm (0.80); the spread
     of a σ estimated from 8 draws is ±25 % (1σ), so 1.5 is ~2σ of that spread.
     """
-    from scheimflux.calibrate import calibrate
-    from scheimflux.calibrate._stage_warning import (
+    from scheimflux.calibration import calibrate
+    from scheimflux.calibration.trust._stage_warning import (
         calibration_axis_conditioning,
         reference_pixels,
     )
@@ -242,7 +243,7 @@ def test_rejection_pass_screens_the_table_target():
     target by 2 px: the rejection pass leaves out exactly those two (each block on its
     own robust scale, as the boards'), records them in `left_out` (re-applied on
     reading), and the axis comes out as without them (the issue's targets)."""
-    from scheimflux.calibrate import calibrate
+    from scheimflux.calibration import calibrate
 
     rig = paper_rig(refine=False)
     obs, stage = table_scene(rig, seed=4, wobble_mrad=0.0, runout_um=0.0)
@@ -266,7 +267,7 @@ def test_rejection_pass_screens_the_table_target():
     assert ang < 0.2e-3 and pos < 5e-3 and np.sqrt(np.mean(across**2)) < 1e-3
     # the clean scene's table block fits at its noise after the pass (0.03 px): the
     # displaced corner does not remain in the figure
-    from scheimflux.calibrate._stage_table import table_target_rms_px
+    from scheimflux.calibration.core._table_block import table_target_rms_px
 
     assert table_target_rms_px(cal.params, cal.data) < 0.035
 
@@ -284,8 +285,8 @@ def test_predicted_sigma_with_table_wobble_matches_monte_carlo():
     means 0.99, 0.88, 1.11); the pooled factor's 1.47, 1.40, 0.57 and a white factor per
     block's 1.05, 0.70, 0.48 (docs/stage.md).
     """
-    from scheimflux.calibrate import calibrate
-    from scheimflux.calibrate._stage_warning import (
+    from scheimflux.calibration import calibrate
+    from scheimflux.calibration.trust._stage_warning import (
         calibration_axis_conditioning,
         reference_pixels,
     )

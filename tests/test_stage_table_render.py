@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 from test_stage_table_calibration import axis_errors
 
+from scheimflux.calibration import read_calibration
 from scheimflux.cli._main import main
-from scheimflux.io import read_calibration, read_observations
+from scheimflux.io import read_observations
 from scheimflux.simulate import (
     default_stage,
     lying_target_pose,

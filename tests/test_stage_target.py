@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import axis_from_poses, stage_from_axis
+from scheimflux.calibration import axis_from_poses, stage_from_axis
 from scheimflux.simulate import default_stage, paper_rig, stage_target_scan
 from scheimflux.targets import Checkerboard
 
@@ -109,7 +109,7 @@ def test_scene_refuses_a_board_the_camera_cannot_see(rig):
 def test_block_geometry_is_the_scenes(scan):
     """`table_points_c` (the residual block's map: stage, table pose, step) puts the board
     where the ray-traced scene put it, for the scene's own stage and table pose."""
-    from scheimflux.calibrate._stage_table import table_points_c
+    from scheimflux.calibration.core._table_block import table_points_c
 
     for k, i in enumerate(scan.frame_index):
         X = np.asarray(
@@ -183,7 +183,7 @@ def test_start_refuses_wrong_order_and_wrong_step(rig, scan):
     """The start of the block (per-view poses with a camera held, then the closed form)
     says in one line that the views are not in table order or Δω is wrong. The camera is
     the rig's paraxial model: good enough for poses, not the truth."""
-    from scheimflux.calibrate._stage_table import initial_table_target
+    from scheimflux.calibration.core._stage_table import initial_table_target
     from scheimflux.camera import ThickLensScheimpflug
 
     cam = ThickLensScheimpflug(**rig.nominal_thick_lens_params())
@@ -214,7 +214,7 @@ def test_motion_covariance_recovers_the_drawn_covariance():
     covariance`): from estimates q_i = motion_i + estimation noise, drawn with a known
     correlated 4 × 4 covariance C and a known noise covariance N, it returns C (not C + N),
     positive semi-definite; pure noise gives ≈ 0, never a negative variance."""
-    from scheimflux.calibrate._stage_table import _motion_covariance
+    from scheimflux.calibration.core._stage_table import _motion_covariance
 
     rng = np.random.default_rng(7)
     L = np.array([[2.0, 0, 0, 0], [0.5, 1.5, 0, 0], [1.8, 0.2, 0.6, 0], [0, -1.0, 0, 0.8]])
@@ -240,8 +240,8 @@ def test_left_out_table_observations_are_re_applied(rig, scan):
     a table target are refused in one line."""
     import dataclasses
 
-    from scheimflux.calibrate._model import make_data
-    from scheimflux.calibrate._rejection import apply_left_out
+    from scheimflux.calibration.core._model import make_data
+    from scheimflux.calibration.core._rejection import apply_left_out
     from scheimflux.io import View
 
     def obs(target):  # one placeholder board view: the weights need only the shapes

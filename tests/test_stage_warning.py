@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from test_stage_calibration import SIGMA_MM, _obs, _scan
 
-from scheimflux.calibrate import calibrate_stage
-from scheimflux.calibrate._stage_warning import (
+from scheimflux.calibration import calibrate_stage
+from scheimflux.calibration.trust._stage_warning import (
     WEAK_AXIS_UM,
     _fit_covariance,
     axis_conditioning,

@@ -10,10 +10,15 @@ import numpy as np
 from test_calibration_file import _thick_lens, make_calibration
 from test_cli_calibrate import _observations
 
-from scheimflux.calibrate import SystemParams, calibration_summary, format_summary
+from scheimflux.calibration import (
+    SystemParams,
+    calibration_summary,
+    calibration_to_dict,
+    format_summary,
+)
 from scheimflux.camera import RadialTangential
 from scheimflux.cli import main
-from scheimflux.io import calibration_to_dict, write_observations
+from scheimflux.io import write_observations
 
 LINE = re.compile(r"^  (\w+)\s+=\s+(\S+) (\S*)\s*(\(fixed\))?$")
 
@@ -96,7 +101,7 @@ def test_summary_states_the_stripe_gates_sigma():
 
 def test_the_cli_prints_the_library_summary(tmp_path, monkeypatch, capsys):
     cal = _cal()
-    calibrate_module = importlib.import_module("scheimflux.calibrate")  # where the CLI looks
+    calibrate_module = importlib.import_module("scheimflux.calibration")  # where the CLI looks
     monkeypatch.setattr(calibrate_module, "calibrate", lambda obs, **kw: cal)
     src, out = tmp_path / "obs.json", tmp_path / "cal.json"
     write_observations(src, _observations())

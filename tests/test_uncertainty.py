@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate import calibrate, fit_diagnostics, length_uncertainty
-from scheimflux.calibrate._solve import split
+from scheimflux.calibration import calibrate, fit_diagnostics, length_uncertainty
+from scheimflux.calibration.core._solve import split
 from scheimflux.io import View
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard

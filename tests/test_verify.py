@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 import scheimflux as sf
-from scheimflux.calibrate._stage_verify import (
+from scheimflux.cli._main import main
+from scheimflux.io._stripes import write_stripes
+from scheimflux.metrology import Cylinder, Steps, fit_shape, label_steps, measure_points
+from scheimflux.metrology._stage_verify import (
     SpherePair,
     parse_artefact,
     split_two_clusters,
 )
-from scheimflux.cli._main import main
-from scheimflux.io._stripes import write_stripes
-from scheimflux.metrology import Cylinder, Steps, fit_shape, label_steps, measure_points
 from scheimflux.simulate import default_stage, paper_rig
 from scheimflux.simulate._artefacts import (
     ring_artefact,
@@ -218,8 +218,8 @@ def test_own_gauge_scan_found_and_other_artefacts_not(rig):
     noise, the same scan from another start angle) is recognised frame by frame; the gauge
     moved by 10 µm on the table, a ring of another radius and a line crossing the gauge's
     stripes are not. All pixels ray-traced."""
-    from scheimflux.calibrate._loaded import MissingObservations
-    from scheimflux.calibrate._own_gauge import frames_on_calibration_gauge, is_own_gauge_scan
+    from scheimflux.calibration import MissingObservations
+    from scheimflux.metrology._own_gauge import frames_on_calibration_gauge, is_own_gauge_scan
     from scheimflux.simulate import gauge_scan
 
     stage = default_stage(rig, 17.5, math.radians(30.0))
@@ -272,7 +272,7 @@ def test_own_gauge_found_at_another_stripe_sampling(rig):
     (Before: no frame of the dense scan matched, and `verify` measured the calibration's
     own gauge as its nominal radius.)
     All pixels ray-traced."""
-    from scheimflux.calibrate._own_gauge import (
+    from scheimflux.metrology._own_gauge import (
         MATCH_PX,
         frames_on_calibration_gauge,
         is_own_gauge_scan,
@@ -308,7 +308,8 @@ def test_own_gauge_found_at_another_stripe_sampling(rig):
 
 @pytest.fixture(scope="module")
 def calibrated(rig, tmp_path_factory):
-    from scheimflux.io import write_calibration, write_observations
+    from scheimflux.calibration import write_calibration
+    from scheimflux.io import write_observations
     from scheimflux.simulate import simulate_observations
     from scheimflux.targets import Checkerboard
 
@@ -381,7 +382,7 @@ def test_camera_points_mark_invalid_pixels_nan(model):
     # once wrote into the read-only NumPy view of the JAX array and refused every scan)
     import types
 
-    from scheimflux.calibrate._stage_verify import _camera_points
+    from scheimflux.metrology._stage_verify import _camera_points
 
     cam, plane = model
     cal = types.SimpleNamespace(camera=cam, params=types.SimpleNamespace(plane=plane))

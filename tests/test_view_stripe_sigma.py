@@ -14,10 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from scheimflux.calibrate import QualityError, calibrate
-from scheimflux.calibrate._model import make_data, stripe_residuals, view_stripe_scale
-from scheimflux.calibrate._plane import _plane_rms, fit_plane_tls, stripe_sigma_rms_mm
-from scheimflux.io import read_calibration, write_calibration
+from scheimflux.calibration import QualityError, calibrate, read_calibration, write_calibration
+from scheimflux.calibration.core._model import make_data, stripe_residuals, view_stripe_scale
+from scheimflux.calibration.core._plane import _plane_rms, fit_plane_tls, stripe_sigma_rms_mm
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
 
@@ -125,7 +124,7 @@ def test_stripe_gain_is_the_distance_per_pixel_by_finite_differences(traced):
     # ‖∂d/∂u‖ of each stripe pixel (one reverse pass) against central differences of
     # the stripe residuals (d / σ with unit weights), 0.01 px steps in u and v: d is
     # smooth (truncation ~1e-4 px² · d''' ≪ 1e-6 relative)
-    from scheimflux.calibrate._plane import _stripe_gains
+    from scheimflux.calibration.core._plane import _stripe_gains
 
     obs, _ = traced
     cal = calibrate(obs)

@@ -13,3 +13,17 @@ from ._noncentral import ThickLensNonCentral as ThickLensNonCentral
 from ._opencv import OpenCVCamera as OpenCVCamera
 from ._pinhole import Pinhole as Pinhole
 from ._thick_lens import ThickLensScheimpflug as ThickLensScheimpflug
+
+__all__ = [
+    "AbstractCamera",
+    "AbstractDistortion",
+    "Division",
+    "NoDistortion",
+    "OpenCVCamera",
+    "OpenCVDistortion",
+    "Pinhole",
+    "RadialTangential",
+    "Ray",
+    "ThickLensNonCentral",
+    "ThickLensScheimpflug",
+]

@@ -21,3 +21,21 @@ from ._workflow import (
     detect_captures as detect_captures,
     extract_scan as extract_scan,
 )
+
+__all__ = [
+    "board_region",
+    "board_stripe",
+    "CaptureReport",
+    "CaptureView",
+    "detect_captures",
+    "detect_session",
+    "extract_scan",
+    "fill_holes",
+    "find_captures",
+    "IMAGE_SUFFIXES",
+    "near_laser",
+    "off_local_grid",
+    "read_image",
+    "target_holes",
+    "write_preview",
+]

@@ -23,11 +23,10 @@ import dataclasses
 import os
 import re
 
-from .._image import read_image as read_image
+from .._image import IMAGE_SUFFIXES as IMAGE_SUFFIXES, read_image as read_image
 
 __all__ = ["IMAGE_SUFFIXES", "CaptureView", "find_captures", "natural_key", "read_image"]
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _VIEW = re.compile(r"^view_(\d+)(?:_(board|stripe|off))?\.(png|jpe?g|tiff?|bmp)$", re.IGNORECASE)
 
 

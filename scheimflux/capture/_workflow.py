@@ -112,7 +112,7 @@ class CaptureReport:
         that `calibrate` weights those views by their own."""
         if not self.speckle_px:
             return ""
-        from ..calibrate._calibrate import SIGMA_STRIPE_PX
+        from ..calibration._calibrate import SIGMA_STRIPE_PX
 
         px = sorted(self.speckle_px.values())
         med = float(np.median(px))

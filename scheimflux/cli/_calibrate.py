@@ -206,7 +206,7 @@ def _check_nominal(args) -> None:
 
 
 def _check_opencv(args) -> None:
-    from ..calibrate._opencv import parse_opencv_flags
+    from ..calibration.core._opencv import parse_opencv_flags
 
     if args.opencv_flags is not None and args.model != "opencv":
         raise CLIError("--opencv-flags applies to --model opencv")
@@ -240,7 +240,7 @@ def _check(args) -> None:
 
 def _with_nominal(args, obs):
     """The observations with the command line's nominal values in place of the file's."""
-    from ..calibrate._init import with_nominal
+    from ..calibration.core._init import with_nominal
 
     try:
         return with_nominal(
@@ -256,15 +256,16 @@ def _with_nominal(args, obs):
 
 def run(args) -> int:
     _check(args)
-    from ..calibrate import (
+    from ..calibration import (
         NotConvergedError,
         RankDeficientError,
         calibrate,
         calibration_summary,
+        calibration_to_dict,
         trust_entries,
+        write_calibration,
     )
-    from ..io._calibration import calibration_to_dict, parse_calibration
-    from ..io._files import check_writable, write_json
+    from ..io._files import check_writable
     from ..io._observations import read_observations
 
     out = check_writable(args.out, overwrite=args.overwrite)  # before the long part
@@ -277,7 +278,7 @@ def run(args) -> int:
         defaults = {"thick-lens": rt, "thick-lens-noncentral": rt, "opencv": "opencv"}
         distortion = defaults.get(args.model, "none")
     if args.model.startswith("thick-lens"):
-        from ..calibrate._init import require_pixel_pitch
+        from ..calibration.core._init import require_pixel_pitch
 
         try:
             require_pixel_pitch(obs)
@@ -340,7 +341,7 @@ def run(args) -> int:
         for name, fit in cal.fits.items()
         if not fit.converged
     ]
-    quality = getattr(cal, "quality", None)
+    quality = cal.quality
     refusals = []
     if failed and not args.allow_unconverged:
         closed = cal.init == "closed-form"
@@ -359,10 +360,9 @@ def run(args) -> int:
     if refusals:
         raise CLIError("; ".join(refusals) + "; no file written")
     try:  # what is written must read back (the file's schema)
-        parse_calibration(doc)
+        write_calibration(out, cal, diagnostics=extra, overwrite=args.overwrite)
     except ValueError as err:
         raise CLIError(f"the calibration cannot be written: {err}; no file written") from None
-    write_json(out, doc, overwrite=args.overwrite)
     if failed:
         print(f"warning: wrote an UNCONVERGED calibration ({', '.join(failed)})")
     if quality is not None and not quality.passed:

@@ -157,7 +157,7 @@ def reconstruct_frames(
 def _coverage_line(loaded, summary) -> str:
     """How many stripe pixels lay outside the calibration's coverage (counted in the
     reconstruction's own pass: `ScanSummary.outside`)."""
-    cov = getattr(loaded, "coverage", None)
+    cov = loaded.coverage
     if cov is None or summary.outside is None:
         return (
             "  coverage: unknown (the calibration file records no coverage of the sensor; "
@@ -173,7 +173,7 @@ def _coverage_line(loaded, summary) -> str:
 
 
 def run(args) -> int:
-    from ..io._calibration import read_calibration
+    from ..io._calibration import read_calibration_document
     from ..io._pointcloud import points_extension
     from ..reconstruct._scan import REASONS, ScanError, reconstruct_scan
     from ._common import progress
@@ -182,7 +182,7 @@ def run(args) -> int:
     if args.chunk_frames < 1:
         raise CLIError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
     out = check_output(args.out, overwrite=args.overwrite)
-    loaded = read_calibration(args.calibration)
+    loaded = read_calibration_document(args.calibration)
     if loaded.plane is None:
         raise CLIError(
             f"{args.calibration} is a camera-only calibration (no laser_plane): reconstruct "

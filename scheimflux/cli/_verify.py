@@ -54,8 +54,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..calibrate._stage_verify import verify_files
     from ..io._files import write_json
+    from ..metrology._stage_verify import verify_files
 
     out = check_output(args.out, overwrite=args.overwrite) if args.out else None
     v = verify_files(

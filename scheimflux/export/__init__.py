@@ -5,3 +5,9 @@ from ._opencv import (
     export_opencv as export_opencv,
     opencv_equivalent as opencv_equivalent,
 )
+
+__all__ = [
+    "export_opencv",
+    "opencv_equivalent",
+    "OpenCVFit",
+]

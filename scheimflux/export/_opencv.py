@@ -248,16 +248,15 @@ def export_opencv(
 
     **Returns:** `(OpenCVCamera, OpenCVFit, (width, height))`.
     """
-    from ..io._calibration import read_calibration
+    from ..io._calibration import read_calibration_document
     from ..io._opencv_yaml import write_opencv_yaml
 
     if os.path.exists(out_path) and not overwrite:
         raise FileExistsError(f"{os.fspath(out_path)} exists; pass --overwrite to replace it")
-    cal = read_calibration(calibration_path)
+    cal = read_calibration_document(calibration_path)
     if image_size is None:
-        sensor = cal.raw.get("sensor") if isinstance(cal.raw, dict) else None
-        if isinstance(sensor, dict) and "width" in sensor and "height" in sensor:
-            image_size = (int(sensor["width"]), int(sensor["height"]))
+        if cal.sensor_size is not None:
+            image_size = cal.sensor_size
         else:
             raise ValueError(
                 f"{os.fspath(calibration_path)} does not record the image size; give "

@@ -1,12 +1,16 @@
-"""Files users exchange: observations, calibrations, stripes, point clouds."""
+"""Files users exchange: observations, calibrations, stripes, point clouds.
+
+This package only serialises: it reads and writes files as values (a calibration file as
+a `CalibrationDocument`); `scheimflux.read_calibration` / `write_calibration` turn a
+`Calibration` into its file and back."""
 
 from ._calibration import (
+    CalibrationDocument as CalibrationDocument,
     CalibrationFileError as CalibrationFileError,
     UnconvergedCalibrationWarning as UnconvergedCalibrationWarning,
-    calibration_to_dict as calibration_to_dict,
-    parse_calibration as parse_calibration,
-    read_calibration as read_calibration,
-    write_calibration as write_calibration,
+    parse_calibration_document as parse_calibration_document,
+    read_calibration_document as read_calibration_document,
+    write_calibration_document as write_calibration_document,
 )
 from ._observations import (
     DroppedView as DroppedView,
@@ -36,12 +40,30 @@ from ._stripes import (
     write_stripes as write_stripes,
 )
 
-
-def __getattr__(name):
-    # `LoadedCalibration` subclasses `scheimflux.calibrate.Calibration` (which imports
-    # this package): resolved on first use.
-    if name == "LoadedCalibration":
-        from ..calibrate._loaded import LoadedCalibration
-
-        return LoadedCalibration
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = [
+    "CalibrationDocument",
+    "CalibrationFileError",
+    "DroppedView",
+    "iter_stripes",
+    "Nominal",
+    "Observations",
+    "ObservationsError",
+    "open_points_writer",
+    "parse_calibration_document",
+    "read_calibration_document",
+    "read_observations",
+    "read_opencv_yaml",
+    "read_ply",
+    "read_points_parquet",
+    "read_stripes",
+    "StageScan",
+    "StageTargetViews",
+    "UnconvergedCalibrationWarning",
+    "View",
+    "write_calibration_document",
+    "write_observations",
+    "write_opencv_yaml",
+    "write_ply",
+    "write_points",
+    "write_stripes",
+]

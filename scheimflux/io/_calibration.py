@@ -42,16 +42,17 @@ tilt) and `"distortion": {"model": "opencv", "k1", "k2", "p1", "p2", "k3", "k4",
 dimensionless (unit `"1"`), acting in the untilted image plane.
 
 `coverage` (optional; files before it load with `coverage = None`, unknown) is the
-sensor region the calibration data covered (`scheimflux.calibrate._coverage`,
+sensor region the calibration data covered (`scheimflux.geometry.Coverage`,
 docs/coverage.md): an occupancy grid of `cell_px` cells, which must match `sensor`.
 
 `laser_plane` is absent in a camera-only calibration (no stripe pixels on the boards):
 such a file serves OpenCV export, not reconstruction. `board_poses` (`T_c_b` of each
 view: rotation vector in rad, translation in mm) and the noise weights in `diagnostics`
 (and `table_target_pose`, the pose `T_t_b` of a target fixed to the rotary table, when
-the stage was calibrated from one) let [`read_calibration`][] rebuild the full
+the stage was calibrated from one) let `scheimflux.read_calibration` rebuild the full
 calibration from the observations
-(`read_calibration(path, observations=obs)`: diagnostics, point uncertainty, refinement).
+(`scheimflux.read_calibration(path, observations=obs)`: diagnostics, point uncertainty,
+refinement).
 
 Angles are written in degrees and read back in radians; the degree values are chosen
 so that the conversion back reproduces the radians bit for bit. The laser plane is
@@ -62,9 +63,12 @@ measurement coordinates (`X_m = R_m_c X_c + t_m_c`, frame 0 of a scan).
 Reading checks every key (unknown keys are refused, with the closest valid name) and
 every value's range: f, z0, pixel pitch, α, β, fx, fy positive; |φ|, |θ|, |τx|, |τy|
 below 90°; all numbers finite; a laser plane at least `MIN_PLANE_DISTANCE_MM` from the
-projection centre; `R_m_c` a rotation. `diagnostics` and `software` are free-form. A
-file whose solves did not converge (`"converged": false`) is read with an
-`UnconvergedCalibrationWarning`.
+projection centre; `R_m_c` a rotation. `diagnostics` and `software` are free-form.
+
+This module only serialises: a document ⇄ a [`CalibrationDocument`][] of the file's values
+(camera, plane, stage, poses, coverage, diagnostics). Turning a `Calibration` into a
+document, and a document back into a `Calibration` (residuals rebuilt from the
+observations), is `scheimflux.calibration`'s (`write_calibration`, `read_calibration`).
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ..geometry._coverage import Coverage
 from ..geometry._plane import LaserPlane
 from ..geometry._stage import RotaryStage
 from ..geometry._transforms import Pose
@@ -107,17 +112,6 @@ from ._calibration_schema import (
     table_pose,
 )
 from ._files import load_json, write_json
-
-
-def __getattr__(name):
-    # `LoadedCalibration` subclasses `scheimflux.calibrate.Calibration`, which imports
-    # this package: resolved on first use to keep the import order free of cycles.
-    if name == "LoadedCalibration":
-        from ..calibrate._loaded import LoadedCalibration
-
-        return LoadedCalibration
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
 
 # ----------------------------------------------------------------------------- writing
 
@@ -188,13 +182,6 @@ def plane_to_dict(plane: LaserPlane) -> dict:
     }
 
 
-def _remaining_step(fit) -> dict:
-    """`{"remaining_step_sigma": x}` for a solve that stopped at its step limit (how far
-    from the optimum, in σ: `_solve.remaining_step_sigma`); `{}` otherwise."""
-    x = (getattr(fit, "stats", None) or {}).get("remaining_step_sigma")
-    return {} if x is None or not math.isfinite(x) else {"remaining_step_sigma": float(x)}
-
-
 def stage_to_dict(stage: RotaryStage, eccentricity_mm=None) -> dict:
     doc = {
         "R_m_c": _floats(stage.R_m_c),
@@ -206,18 +193,26 @@ def stage_to_dict(stage: RotaryStage, eccentricity_mm=None) -> dict:
     return doc
 
 
+def pose_to_dict(pose: Pose) -> dict:
+    """One pose (`table_target_pose`): rotation vector (rad) and translation (mm)."""
+    return {
+        "rotvec": _floats(np.asarray(pose.rotvec, dtype=np.float64)),
+        "translation_mm": _floats(np.asarray(pose.translation, dtype=np.float64)),
+    }
+
+
 def poses_to_dict(poses: Pose) -> dict:
     rv = np.asarray(poses.rotvec, dtype=np.float64).reshape(-1, 3)
     t = np.asarray(poses.translation, dtype=np.float64).reshape(-1, 3)
     return {"rotvec": [_floats(r) for r in rv], "translation_mm": [_floats(r) for r in t]}
 
 
-def _jsonable(v: Any) -> Any:
+def jsonable(v: Any) -> Any:
     """Diagnostics values as plain JSON types (NumPy/JAX scalars and arrays included)."""
     if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
+        return {str(k): jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
+        return [jsonable(x) for x in v]
     if v is None or isinstance(v, (bool, str)):
         return v
     if isinstance(v, (int, np.integer)) and not isinstance(v, np.bool_):
@@ -230,147 +225,53 @@ def _jsonable(v: Any) -> Any:
     if a.ndim == 0:
         f = float(a)
         return f if math.isfinite(f) else None
-    return [_jsonable(x) for x in a]
+    return [jsonable(x) for x in a]
 
 
-def _version() -> str:
+def software_version() -> str:
     try:
         return importlib.metadata.version("scheimflux")
     except importlib.metadata.PackageNotFoundError:  # pragma: no cover - source checkout
         return "unknown"
 
 
-def _weights(cal) -> dict:
-    """The noise weights of the residuals (to rebuild them from the observations)."""
-    from ..calibrate._model import CalibrationData
-
-    data = getattr(cal, "data", None)
-    if not isinstance(data, CalibrationData):
-        return {}
-    out = {
-        "sigma_corner_px": float(data.sigma_corner_px),
-        "sigma_stripe_mm": float(data.sigma_stripe_mm),
-        "robust": data.robust,
-    }
-    scale = np.asarray(data.stripe_scale)
-    if np.any(scale != 1.0):  # views weighted by their own measured stripe σ
-        out["stripe_sigma_scale"] = [float(x) for x in scale]
-    gain = np.asarray(data.stripe_gain)
-    if np.any(gain != 1.0):  # each view's σ off its board, in footprints (the gates')
-        out["stripe_gain"] = [float(x) for x in gain]
-    quality = getattr(cal, "quality", None)
-    radius = getattr(quality, "rejected", {}).get("field_radius_px")
-    if radius is not None:  # calibrated inside this radius; re-applied on reading
-        out["field_radius_px"] = float(radius)
-    left_out = getattr(cal, "left_out", None)
-    if left_out is not None:  # the rejection pass's choice, re-applied on reading
-        out["left_out"] = {k: np.asarray(v, dtype=int).tolist() for k, v in left_out.items()}
-    return out
+# ----------------------------------------------------------------------------- reading
 
 
-def calibration_to_dict(cal, *, diagnostics: dict | None = None) -> dict:
-    """A `Calibration` (from `scheimflux.calibrate.calibrate`, or read back) as a JSON-ready
-    dict.
+@dataclasses.dataclass(frozen=True)
+class CalibrationDocument:
+    """A validated calibration file, as values: what the file holds, nothing restored.
 
-    `diagnostics` adds entries to the file's diagnostics (they override the computed
-    ones of the same name). A calibration read from a file keeps its file's diagnostics.
+    **Fields:** `model` (`"thick-lens"`, …), `distortion` (its distortion model's name),
+    `sensor_size` `(width, height)` px or None (not recorded), `camera`, `board_poses`
+    (`Pose`, `(V, 3)` arrays; `(0, 3)` when the file holds none), `plane` and `stage`
+    (None when absent), `eccentricity_mm` `(2,)` or None, `table_pose` (`Pose` or None),
+    `coverage` (`Coverage` or None), `diagnostics` (a dict, as written) and `raw` (the
+    whole decoded document).
     """
-    params = cal.params
-    model = camera_model(params.camera)
-    if model != cal.model:
-        raise ValueError(f"calibration says model {cal.model!r} but holds a {model} camera")
-    doc = {"format": FORMAT, "model": cal.model}
-    size = getattr(cal, "sensor_size", None)
-    if size is not None and all(int(v) > 0 for v in size):
-        doc["sensor"] = {"width": int(size[0]), "height": int(size[1])}
-    doc["camera"] = camera_to_dict(params.camera)
-    if params.plane is not None:
-        doc["laser_plane"] = plane_to_dict(params.plane)
-    if params.stage is not None:
-        if params.plane is None:
-            raise ValueError("the calibration has a stage but no laser plane")
-        doc["stage"] = stage_to_dict(params.stage, params.eccentricity)
-    if params.board_poses is not None and np.shape(params.board_poses.rotvec)[0] > 0:
-        doc["board_poses"] = poses_to_dict(params.board_poses)
-    if getattr(params, "table_pose", None) is not None:
-        tp = params.table_pose
-        doc["table_target_pose"] = {
-            "rotvec": _floats(np.asarray(tp.rotvec, dtype=np.float64)),
-            "translation_mm": _floats(np.asarray(tp.translation, dtype=np.float64)),
-        }
-    coverage = getattr(cal, "coverage", None)
-    if coverage is not None:
-        doc["coverage"] = coverage.to_dict()
-    fits = dict(getattr(cal, "fits", {}) or {})
-    before = getattr(cal, "diagnostics", None)
-    diag = dict(before) if isinstance(before, dict) else {}
-    diag.update(
-        {
-            "reprojection_rms_px": cal.reprojection_rms_px,
-            "laser_plane_rms_mm": cal.plane_rms_mm,
-            "gauge_rms_mm": cal.gauge_rms_mm,
-            "init": getattr(cal, "init", None),
-            "joint": getattr(cal, "joint", None),
-            "solves": {
-                name: {
-                    "steps": int(fit.steps),
-                    "converged": bool(fit.converged),
-                    "time_s": float(fit.time_s),
-                    "cost": float(fit.cost),
-                    **({"message": str(fit.message)} if fit.message else {}),
-                    **_remaining_step(fit),
-                }
-                for name, fit in fits.items()
-            },
-            "converged": all(bool(fit.converged) for fit in fits.values()),
-            "frozen": list(getattr(cal, "freeze", ()) or ()),
-            **_weights(cal),
-            **_table_target(cal),
-        }
-    )
-    diag.update(diagnostics or {})
-    doc["diagnostics"] = _jsonable(diag)
-    doc["software"] = {"name": "scheimflux", "version": _version()}
-    return doc
+
+    model: str
+    distortion: str
+    sensor_size: tuple[int, int] | None
+    camera: Any
+    board_poses: Pose
+    plane: LaserPlane | None
+    stage: RotaryStage | None
+    eccentricity_mm: np.ndarray | None
+    table_pose: Pose | None
+    coverage: Coverage | None
+    diagnostics: dict
+    raw: dict
+
+    @property
+    def converged(self) -> bool:
+        """Whether every solve converged, as the file records it."""
+        return bool(self.diagnostics.get("converged", True))
 
 
-def _table_target(cal) -> dict:
-    """`{"table_target": {"steps", "rms_px"}}` of a stage calibrated with a target on the
-    table (its data at hand), else `{}`."""
-    from ..calibrate._model import CalibrationData
-    from ..calibrate._stage_table import table_target_rms_px
-
-    data = getattr(cal, "data", None)  # not CalibrationData: read without observations
-    table = data.table if isinstance(data, CalibrationData) else None
-    if table is None or getattr(cal.params, "table_pose", None) is None:
-        return {}
-
-    steps = np.asarray(table.steps)[np.asarray(table.w).sum(axis=1) > 0]
-    rms = table_target_rms_px(cal.params, cal.data)
-    return {"table_target": {"steps": [int(i) for i in steps], "rms_px": rms}}
-
-
-def write_calibration(
-    path: str | os.PathLike, cal, *, diagnostics: dict | None = None, overwrite: bool = False
-) -> None:
-    """Write a calibration file atomically (never clobbers unless `overwrite`).
-
-    The document is validated by reading it back before anything is written.
-    """
-    doc = calibration_to_dict(cal, diagnostics=diagnostics)
-    parse_calibration(doc)  # refuse to write what we could not read
-    write_json(path, doc, overwrite=overwrite)
-
-
-def parse_calibration(doc, *, observations=None, source: str = "the calibration"):
-    """Validate a decoded calibration document; raises `CalibrationFileError`.
-
-    **Returns:** a `LoadedCalibration` (a `scheimflux.calibrate.Calibration`); see
-    [`read_calibration`][] for `observations`.
-    """
-    from ..calibrate._loaded import restore_calibration
-    from ..calibrate._model import SystemParams
-
+def parse_calibration_document(doc) -> CalibrationDocument:
+    """Validate a decoded calibration document; raises `CalibrationFileError` (one line,
+    naming the key and the problem)."""
     if not isinstance(doc, dict):
         raise CalibrationFileError("a calibration file must hold a JSON object")
     fmt = doc.get("format")
@@ -393,77 +294,68 @@ def parse_calibration(doc, *, observations=None, source: str = "the calibration"
         raise CalibrationFileError("table_target_pose needs a stage")
     coverage = None
     if doc.get("coverage") is not None:
-        from ..calibrate._coverage import Coverage
-
         try:
             coverage = Coverage.from_dict(doc["coverage"], sensor)
         except ValueError as err:
             raise CalibrationFileError(str(err)) from None
-    diagnostics = _diagnostics(doc)
-    params = SystemParams(
-        camera,
-        Pose(jnp.asarray(poses.rotvec), jnp.asarray(poses.translation)),
-        plane,
-        stage,
-        None if ecc is None else jnp.asarray(ecc),
-        table_pose(doc),
-    )
-    cal = restore_calibration(
-        params=params,
+    return CalibrationDocument(
         model=model,
         distortion=dname,
-        diagnostics=diagnostics,
-        sensor_size=sensor,
+        sensor_size=None if sensor is None else (int(sensor[0]), int(sensor[1])),
+        camera=camera,
+        board_poses=Pose(jnp.asarray(poses.rotvec), jnp.asarray(poses.translation)),
+        plane=plane,
+        stage=stage,
         eccentricity_mm=ecc,
+        table_pose=table_pose(doc),
+        coverage=coverage,
+        diagnostics=_diagnostics(doc),
         raw=doc,
-        observations=observations,
-        source=source,
     )
-    return dataclasses.replace(cal, coverage=coverage)
 
 
-def read_calibration(path: str | os.PathLike, *, observations=None):
-    """Read and validate a calibration file; errors name the file and the problem.
+def read_calibration_document(path: str | os.PathLike) -> CalibrationDocument:
+    """Read and validate a calibration file (errors name the file and the problem).
 
-    **Arguments:**
-    - `path`: a `scheimflux.calibration/1` file.
-    - `observations`: the `Observations` (or the path of the observations file) the
-      calibration was computed from. With them the result supports everything the
-      in-memory calibration does — `scheimflux.diagnostics`, `point_uncertainty`,
-      `residual_function` and `refine` — on the same residuals (rebuilt with the file's
-      noise weights at the stored optimum). Without them `cal.data` raises a clear error
-      when used.
+    What reconstruction and export need (camera, plane, stage, sensor, coverage) without
+    the calibration package; `scheimflux.read_calibration` gives the full `Calibration`.
 
-    **Returns:** a `LoadedCalibration` (a `scheimflux.calibrate.Calibration` with
-    `camera`, `plane` (None for a camera-only calibration), `stage`, `eccentricity_mm`,
-    `sensor_size` (None if not recorded), `diagnostics` and `raw`).
-
-    **Raises:** `FileNotFoundError` if missing; `ValueError` (`CalibrationFileError`)
-    for invalid JSON, another format, missing or unknown keys, wrong shapes or types,
-    units other than the file's, values out of range, an `R_m_c` that is not a rotation,
-    or an unknown model/distortion; `ValueError` for observations that do not match.
-    Warns `UnconvergedCalibrationWarning` when the file records an unconverged solve.
+    **Raises:** `FileNotFoundError` if missing; `CalibrationFileError` (a `ValueError`)
+    for invalid JSON, another format, missing or unknown keys, wrong shapes, types or
+    units, values out of range, an `R_m_c` that is not a rotation. Warns
+    `UnconvergedCalibrationWarning` when the file records an unconverged solve.
     """
     doc = load_json(path, "calibration")
-    if isinstance(observations, (str, os.PathLike)):
-        from ._observations import read_observations
-
-        observations = read_observations(observations)
     try:
-        cal = parse_calibration(doc, observations=observations, source=os.fspath(path))
+        document = parse_calibration_document(doc)
     except CalibrationFileError as err:
         raise CalibrationFileError(f"{os.fspath(path)}: {err}") from None
-    if not cal.converged:
-        failed = [
-            name
-            for name, s in (cal.diagnostics.get("solves") or {}).items()
-            if isinstance(s, dict) and not s.get("converged", True)
-        ]
-        warnings.warn(
-            f"{os.fspath(path)}: this calibration did NOT converge"
-            + (f" (solves: {', '.join(failed)})" if failed else "")
-            + "; its numbers may be wrong",
-            UnconvergedCalibrationWarning,
-            stacklevel=2,
-        )
-    return cal
+    _warn_if_unconverged(path, document)
+    return document
+
+
+def _warn_if_unconverged(path: str | os.PathLike, document: CalibrationDocument) -> None:
+    """Warn `UnconvergedCalibrationWarning` when the file records an unconverged solve."""
+    if document.converged:
+        return
+    failed = [
+        name
+        for name, s in (document.diagnostics.get("solves") or {}).items()
+        if isinstance(s, dict) and not s.get("converged", True)
+    ]
+    warnings.warn(
+        f"{os.fspath(path)}: this calibration did NOT converge"
+        + (f" (solves: {', '.join(failed)})" if failed else "")
+        + "; its numbers may be wrong",
+        UnconvergedCalibrationWarning,
+        stacklevel=4,
+    )
+
+
+def write_calibration_document(
+    path: str | os.PathLike, doc: dict, *, overwrite: bool = False
+) -> None:
+    """Write a calibration document atomically (never clobbers unless `overwrite`); it is
+    validated by parsing it first, so nothing unreadable is written."""
+    parse_calibration_document(doc)
+    write_json(path, doc, overwrite=overwrite)

@@ -36,7 +36,7 @@ def folder_message(path: str, what: str) -> str:
     and a folder of images, also how to make one from them."""
     msg = f"{path}: is a folder, not a {what} file"
     if what == "stripes":
-        from ..capture._folder import IMAGE_SUFFIXES
+        from .._image import IMAGE_SUFFIXES
 
         if any(n.lower().endswith(IMAGE_SUFFIXES) for n in os.listdir(path)):
             msg += (

@@ -1,11 +1,12 @@
 """Metrology: differentiable geometric fits (plane, circle, cylinder, sphere, steps,
 distance) of reconstructed points, and measured values with their GUM uncertainty."""
 
-from ._calcov import (
+from ..calibration.trust._calcov import (
     GroupCovariance as GroupCovariance,
     group_covariance as group_covariance,
     sandwich_covariance as sandwich_covariance,
 )
+from ._chain import chain_function as chain_function
 from ._fits import (
     CircleFit as CircleFit,
     CylinderFit as CylinderFit,
@@ -37,4 +38,35 @@ from ._shapes import (
     Sphere as Sphere,
     Steps as Steps,
 )
-from ._stripes import chain_function as chain_function, measure_stripes as measure_stripes
+from ._stripes import measure_stripes as measure_stripes
+
+__all__ = [
+    "AbstractShape",
+    "chain_function",
+    "Circle",
+    "CircleFit",
+    "COVERAGE_FACTOR",
+    "Cylinder",
+    "CylinderFit",
+    "Distance",
+    "fit_circle_3d",
+    "fit_cylinder",
+    "fit_plane",
+    "fit_shape",
+    "group_covariance",
+    "GroupCovariance",
+    "label_steps",
+    "measure_points",
+    "measure_stripes",
+    "Measurement",
+    "Plane",
+    "PlaneFitResult",
+    "residual_normals",
+    "sandwich_covariance",
+    "ShapeFit",
+    "SOURCES",
+    "Sphere",
+    "step_height",
+    "StepHeightResult",
+    "Steps",
+]

@@ -52,9 +52,9 @@ def frozen_derivatives(cal, shape, uv, fi, lab, frame, paths, source="the calibr
     import jax
     import jax.numpy as jnp
 
-    from ..calibrate import residual_function
-    from ..calibrate._solve import free_spec, jacobian, parameter_labels
-    from ._stripes import chain_function
+    from ..calibration import residual_function
+    from ..calibration.core._solve import free_spec, jacobian, parameter_labels
+    from ._chain import chain_function
 
     frozen = tuple(cal.freeze)
     for p in paths:

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._calcov import MAX_LAG, lag_correlations
+from ..calibration.trust._calcov import MAX_LAG, lag_correlations
 from ._lsq import fit_shape, parameter_jacobian, residual_normals
 from ._shapes import AbstractShape
 

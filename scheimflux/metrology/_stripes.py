@@ -12,14 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ..calibrate import diagnostics as calibration_diagnostics, residual_function
-from ..calibrate._own_gauge import (
-    few_gauge_frames_message,
-    frames_on_calibration_gauge,
-    is_own_gauge_scan,
-    own_gauge_message,
-)
-from ..reconstruct import intersect_ray_plane
+from ..calibration import diagnostics as calibration_diagnostics, residual_function
+from ._chain import FRAMES, _reconstruct_one
 from ._gum import (
     Measurement,
     _check_labels,
@@ -31,50 +25,15 @@ from ._gum import (
     lag_correlation,
     point_lines,
 )
+from ._own_gauge import (
+    few_gauge_frames_message,
+    frames_on_calibration_gauge,
+    is_own_gauge_scan,
+    own_gauge_message,
+)
 from ._shapes import AbstractShape
 
-__all__ = ["chain_function", "measure_stripes"]
-
-FRAMES = ("camera", "measurement")
-
-
-def _reconstruct_one(params, uv, i, frame):
-    ray, ok = params.camera.backproject_one_with_mask(uv)
-    X, status = intersect_ray_plane(ray, params.plane, ok)
-    if frame == "measurement":
-        X = params.stage.to_measurement(X, i)
-    return X, status
-
-
-def chain_function(shape: AbstractShape, params, spec, idx, frame: str = "camera"):
-    """The measured values as a JAX function of calibration parameters and pixels.
-
-    **Arguments:**
-    - `params`, `spec`: a calibration's parameter pytree and free-parameter filter spec
-      (`scheimflux.calibrate.residual_function(cal, "joint")[1:]`).
-    - `idx`: positions, in the flattened free parameters, of those to differentiate
-      (e.g. `diagnostics(cal).select(("camera.", "plane."))`).
-    - `frame`: `"camera"` or `"measurement"` (rotary stage, frame index per pixel).
-
-    **Returns:** `(f, theta0)`: `f(theta, uv, frame_index, labels) -> values (K,)` with
-    `theta` `(q,)`, `uv` `(N, 2)`, `frame_index` `(N,)`, `labels` `(N,)`; and `theta0`,
-    the calibration's values of `theta`. `f` is pure: jit, grad, jacrev, vmap apply.
-    """
-    if frame not in FRAMES:
-        raise ValueError(f"frame must be 'camera' or 'measurement', got {frame!r}")
-    from ._lsq import fit_shape
-
-    free, static = eqx.partition(params, spec)
-    x0, unravel = ravel_pytree(free)
-    idx = jnp.asarray(idx, dtype=jnp.int32)
-
-    def f(theta, uv, frame_index, labels):
-        prm = eqx.combine(unravel(x0.at[idx].set(theta)), static)
-        X, _ = jax.vmap(lambda p, i: _reconstruct_one(prm, p, i, frame))(uv, frame_index)
-        return fit_shape(shape, X, labels).values
-
-    return f, x0[idx]
-
+__all__ = ["measure_stripes"]
 
 @eqx.filter_jit
 def _chain_terms(shape, free, static, idx, uv, fi, labels, frame):
@@ -116,13 +75,13 @@ class _JointLabels:
 
 
 def _joint_covariance(cal, diag, source, how="groups"):
-    from ..calibrate._model import CalibrationData
+    from ..calibration.core._model import CalibrationData
 
     if (
         diag is None and isinstance(how, str) and how == "groups" and "joint" in cal.fits
         and isinstance(getattr(cal, "data", None), CalibrationData)
     ):  # fmt: skip
-        from ..calibrate._solve import parameter_labels
+        from ..calibration.core._solve import parameter_labels
 
         _, params, spec = residual_function(cal, "joint")
         return _JointLabels(parameter_labels(params, spec))
@@ -141,7 +100,7 @@ def _joint_covariance(cal, diag, source, how="groups"):
 
 def _calibration_covariance(cal, diag, how):
     """`(Σ (p, p) in diag's labels, a note)` for the calibration term."""
-    from ._calcov import GroupCovariance, group_covariance
+    from ..calibration.trust._calcov import GroupCovariance, group_covariance
 
     if isinstance(how, str) and how == "pooled":
         return diag.covariance, f"variance factor {diag.variance_factor:.3g} pooled"

@@ -178,7 +178,8 @@ def _labels_for(kind, X, labels, n_faces):
 
 def _measure_stripes_files(kind, cal_path, stripes_path, obs_path, frame, labels, n_faces,
                            distance, sigma_px, frozen_sigma="nominal"):
-    from ..io import read_calibration, read_observations
+    from ..calibration import read_calibration
+    from ..io import read_observations
     from ..io._stripes import read_stripes
     from ..reconstruct import stripe_to_camera, stripe_to_measurement
     from ._stripes import measure_stripes

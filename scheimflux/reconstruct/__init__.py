@@ -11,3 +11,13 @@ from ._stream import (
     iter_reconstruct as iter_reconstruct,
     reconstruct_frames as reconstruct_frames,
 )
+
+__all__ = [
+    "intersect_ray_plane",
+    "iter_reconstruct",
+    "reconstruct_frames",
+    "Reconstruction",
+    "Status",
+    "stripe_to_camera",
+    "stripe_to_measurement",
+]

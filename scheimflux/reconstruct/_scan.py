@@ -66,7 +66,8 @@ def reconstruct_scan(
     """Reconstruct a STRIPES.json scan into a point-cloud file, in bounded memory.
 
     **Arguments:**
-    - `calibration`: a CAL.json path or a loaded calibration (`read_calibration`).
+    - `calibration`: a CAL.json path, a `Calibration` or a `CalibrationDocument`
+      (`read_calibration_document`).
     - `stripes`: the STRIPES.json file (read one frame at a time).
     - `out`: `.ply`, `.npy` or `.json` (`write_points`' formats, the same bytes); written
       to a temporary file beside it and moved into place at the end.
@@ -83,14 +84,13 @@ def reconstruct_scan(
     `ValueError` for a malformed or cut-short STRIPES file, as `read_calibration`; in
     every case no output file is left.
     """
-    from ..io._calibration import read_calibration
+    from ..io._calibration import read_calibration_document
     from ..io._pointcloud import open_points_writer, points_extension
     from ..io._stripes import iter_stripes
 
     ext = points_extension(out)
-    loaded = read_calibration(calibration) if isinstance(calibration, (str, os.PathLike)) else (
-        calibration
-    )
+    from_file = isinstance(calibration, (str, os.PathLike))
+    loaded = read_calibration_document(calibration) if from_file else calibration
     name = calibration if isinstance(calibration, (str, os.PathLike)) else "the calibration"
     if loaded.plane is None:
         raise ScanError(
@@ -108,9 +108,9 @@ def reconstruct_scan(
         frames = iter_stripes(stripes)
     elif ext == ".npy" and width is None:
         raise ValueError(".npy output from a frame iterator needs the row width up front")
-    sensor = getattr(loaded, "sensor_size", None)
+    sensor = loaded.sensor_size
     stage = loaded.stage if frame == "measurement" else None
-    coverage = getattr(loaded, "coverage", None)
+    coverage = loaded.coverage
     tally = [0, 0]  # stripe pixels outside the coverage, on the sensor
     if coverage is not None:
         frames = _counting_coverage(coverage, frames, tally)
@@ -151,7 +151,7 @@ def reconstruct_scan(
         counts=tuple(int(c) for c in counts),
         lo=tuple(float(x) for x in lo),
         hi=tuple(float(x) for x in hi),
-        model=str(getattr(loaded, "model", "")),
+        model=str(loaded.model),
         frame=frame,
         sensor_checked=sensor is not None,
         outside=tally[0] if coverage is not None else None,
@@ -162,7 +162,7 @@ def reconstruct_scan(
 def _counting_coverage(coverage, frames, tally):
     """`frames` unchanged, adding each frame's pixels outside `coverage` and on the
     sensor to `tally` as it passes (`count_outside`)."""
-    from ..calibrate._coverage import count_outside
+    from ..geometry._coverage import count_outside
 
     for f in frames:
         a = np.asarray(f)

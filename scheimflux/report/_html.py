@@ -147,7 +147,7 @@ def _residuals(rep: Report, cal) -> None:
         rep.add("Residuals", "<p>Residual maps need the observations the calibration was "
                 "computed from (--observations).</p>")
         return
-    from ..calibrate import residual_map
+    from ..calibration import residual_map
 
     Figure, Canvas = _matplotlib()
     size = getattr(cal, "sensor_size", None)
@@ -183,7 +183,7 @@ def _corner_errors(cal):
     """Reprojection errors per view `(V, M, 2)` px, the detected mask and the pixels."""
     import jax
 
-    from ..calibrate._model import board_images_px
+    from ..calibration.core._model import board_images_px
 
     data, params = cal.data, cal.params
 
@@ -197,7 +197,7 @@ def _corner_errors(cal):
 
 def _coverage(rep: Report, doc: dict, cal) -> None:
     """The sensor region covered by calibration data, with the corners over it."""
-    from ..calibrate._coverage import Coverage
+    from ..geometry._coverage import Coverage
 
     cd, sensor = doc.get("coverage"), doc.get("sensor")
     if cd is None or not isinstance(sensor, dict):
@@ -311,7 +311,8 @@ def build_report(calibration: str, *, observations: str | None = None,
     _matplotlib()
     import json
 
-    from ..io import read_calibration, read_observations
+    from ..calibration import read_calibration
+    from ..io import read_observations
 
     cal = None
     if observations is not None:

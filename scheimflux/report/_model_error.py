@@ -55,7 +55,7 @@ def model_error_map(cal, *, bins: tuple[int, int] = (16, 12)) -> ModelErrorMap:
 
     **Returns:** a [`ModelErrorMap`][].
     """
-    from ..calibrate import residual_map
+    from ..calibration import residual_map
     from ..reconstruct import stripe_to_camera
 
     if cal.plane is None:

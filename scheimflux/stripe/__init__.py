@@ -13,3 +13,15 @@ from ._image import CHANNELS as CHANNELS
 from ._kernels import steger_sigma as steger_sigma
 from ._mask import region_mask as region_mask
 from ._result import StripeResult as StripeResult
+
+__all__ = [
+    "CHANNELS",
+    "extract_stripe",
+    "extract_stripes",
+    "frame_files",
+    "FrameStripes",
+    "iter_folder_stripes",
+    "region_mask",
+    "steger_sigma",
+    "StripeResult",
+]

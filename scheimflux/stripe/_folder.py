@@ -22,11 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from .._image import read_image as read_image
+from .._image import IMAGE_SUFFIXES as IMAGE_SUFFIXES, read_image as read_image
 from ._extract import extract_stripe
 from ._result import StripeResult
-
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 
 
 def _natural_key(name: str) -> list:

@@ -19,3 +19,20 @@ from ._target import (
     detect_target as detect_target,
     make_target as make_target,
 )
+
+__all__ = [
+    "aruco_dictionary_names",
+    "CharucoBoard",
+    "Checkerboard",
+    "circle_diameters_mm",
+    "CircleGrid",
+    "detect_charuco",
+    "detect_checkerboard",
+    "detect_circles",
+    "detect_target",
+    "DetectionResult",
+    "make_target",
+    "parse_board_size",
+    "Target",
+    "TARGET_KINDS",
+]
