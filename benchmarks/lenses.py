@@ -140,7 +140,8 @@ def _released_tilt():
     from scheimflux.calibration.core._gauge import distorted_freeze
     from scheimflux.camera import ThickLensNonCentral
 
-    mods = [importlib.import_module(f"scheimflux.calibrate.{m}") for m in ("_camera", "_calibrate")]
+    names = ("scheimflux.calibration.core._camera", "scheimflux.calibration._calibrate")
+    mods = [importlib.import_module(m) for m in names]
     orig = [m.least_squares for m in mods]
 
     def solve(fn, params, data, freeze=(), **kw):
