@@ -47,10 +47,16 @@ from .core._rejection import (
 )
 from .core._result import Calibration
 from .core._screen import REJECT_SIGMA, screen_field, screen_observations
-from .core._solve import NotConvergedError, RankDeficientError, least_squares
+from .core._solve import NotConvergedError, RankDeficientError, free_spec, least_squares
 from .core._stage import _gauge_rms, calibrate_stage
 from .core._stage_table import stage_extra_freeze, table_target_start
 from .trust._quality import _gated, _hint_text
+from .trust._shift import camera_shift
+from .trust._variance import MAX_ITERATIONS, variance_components, with_factors
+
+# How the residual groups' σ are set: estimated from the data (the stated σ as priors), or
+# as stated.
+NOISE_MODES = ("estimate", "stated")
 
 # The stripe centres' noise assumed by default (px): a clean line's (`detect` reports a
 # speckled line's own scatter, which is several times this).
@@ -74,6 +80,7 @@ def calibrate(
     opencv_flags: Sequence[str] | str | None = None,
     gauge: str = "held",
     max_radius_px: float | None = None,
+    noise: str = "estimate",
 ) -> Calibration:
     """Calibrate camera, laser plane and (if scanned) the rotary stage.
 
@@ -97,6 +104,16 @@ def calibrate(
     (measured on a 4-view ray-traced scene: 300 steps, not converged, against 8 steps
     converged without it), while the rejection pass leaves out the same outliers.
     `cal.quality` holds the gates, counts and warnings (`scheimflux.calibration.trust._gates`).
+
+    With `noise="estimate"` (the default) the stated σ are priors: after the joint solve
+    each residual group's σ (the corners; each view's stripe points; the gauge scan) is
+    estimated from its residuals over its redundancy and the problem solved again until
+    they agree (`trust._variance`); the gates then judge the estimated noise against
+    what real data reach and the model's fit (tails, outliers, physical sanity), and the
+    summary says where the data's noise differs from the stated. Where the joint solve
+    moves the camera beyond what its corners allow (`trust._shift`), the camera is kept
+    as the corners determine it and the laser plane (and stage) fitted to it, with a
+    warning naming the move.
 
     **Arguments:**
     - `obs`: observations: board corners per view (at least 3 views with 6+ corners),
@@ -132,6 +149,8 @@ def calibrate(
       fixes its weak directions (see [`calibrate_camera`][]; docs/noncentral.md). With
       `"profile"` the joint solve holds the axis point at the camera profile's value and
       the covariance has it free.
+    - `noise`: `"estimate"` (default): each group's σ from the data (above); `"stated"`:
+      the σ as given (the gates then compare the residuals with them).
     - `max_radius_px`: calibrate inside this distance (px) from the sensor's centre
       only: every corner, stripe and gauge pixel beyond it is left out and counted
       ([`screen_field`][]); for a lens that vignettes the outer field, where a spot's
@@ -147,6 +166,9 @@ def calibrate(
     when a quality gate fails (both carry the result); `ValueError` for data that cannot
     determine the laser plane or that leave parameters undetermined.
     """
+    if noise not in NOISE_MODES:
+        raise ValueError(f"noise must be one of {NOISE_MODES}, got {noise!r}")
+    stated = {"corner_px": float(sigma_corner_px), "stripe_px": float(sigma_stripe_px)}
     obs, outside = screen_observations(obs)
     if max_radius_px is not None:
         obs, field = _inside_radius(obs, max_radius_px)
@@ -177,12 +199,14 @@ def calibrate(
     notes = cam_cal.notes + profile_notes(cam_cal.axis_profile) + _unchecked_motion(obs)
     notes += board_scale_note(obs, cam_cal.poses)
     if camera_only:
-        cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust)
+        cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust, noise)
         rejected = {"threshold_sigma": reject}
         if reject is not None:
             rejected["corner_outliers"] = int(_outliers(cal.params, cal.data, reject)[0].sum())
         cal = dataclasses.replace(cal, axis_profile=cam_cal.axis_profile)
-        return _gated(cal, {**outside, **rejected}, None, throw, notes, _tilt_hint(obs, cam_cal))
+        record = _noise_record(noise, stated, cal.data, None, None)
+        hint = _tilt_hint(obs, cam_cal)
+        return _gated(cal, {**outside, **rejected}, None, throw, notes, hint, record)
     footprint = pixel_footprint_mm(cam_cal.camera, cam_cal.poses, obs)
     sigma_mm = sigma_stripe_px * footprint
     own = view_stripe_scale(obs, sigma_stripe_px)
@@ -225,6 +249,13 @@ def calibrate(
     if joint:
         fn = joint_residuals if stage is not None else camera_plane_residuals
         extra = stage_extra_freeze(obs) if stage is not None else ()
+        if noise == "estimate":
+            # each group's σ from the separate steps' residuals (the camera's corners,
+            # each view's stripe points about the plane fitted to them): the joint solve
+            # then starts with the data's balance of corners and lines, not the stated
+            # one, which can pull the camera far (a line weighted 20x too high)
+            vc = variance_components(fn, params, data, free_spec(params, freeze + extra))
+            data = with_factors(data, vc)
         try:
             fit = least_squares(
                 fn,
@@ -245,12 +276,34 @@ def calibrate(
             if isinstance(err, NotConvergedError):
                 raise NotConvergedError(message, err.fit) from None
             raise RankDeficientError(message) from None
+        release = hold  # held at run time, reported free (the profiled axis point)
+        # the laser lines may refine the camera within what its corners allow; a move
+        # beyond (checked after the first solve and after the noise estimate, which can
+        # follow a collapsing camera: stripe distances in mm shrink with the scene) keeps
+        # the corners' camera, held at run time in the joint solve's compiled program
+        shift, weights = camera_shift(cam_cal.fit, fit), data
+        for _ in range(2):
+            if shift is not None and shift.moved and "camera" not in hold:
+                hold, data = hold + ("camera",), weights  # the weights before it moved
+                fit = least_squares(
+                    fn, start, data, freeze=freeze + extra, hold=hold, release=release,
+                    max_steps=max_steps, throw=throw,
+                )  # fmt: skip
+                notes += (_held_camera_note(shift, stage is not None),)
+            if noise != "estimate":
+                break
+            fit, data, passes = _estimate_noise(
+                fn, fit, data, freeze + extra, hold, release, max_steps, throw
+            )
+            if "camera" in hold:
+                break
+            shift = camera_shift(cam_cal.fit, fit)
         params = fit.params
         fits["joint"] = fit
     outliers = {"threshold_sigma": reject}
     left_out = None  # set where the rejection pass re-solved without them
     if reject is not None:
-        fit, applied, passes = _rejection_passes(
+        fit, applied, passes_r = _rejection_passes(
             fn if joint else None,
             start,
             params,
@@ -260,12 +313,20 @@ def calibrate(
             max_steps,
             throw,
             hold,
+            release=release if joint else (),
         )
         if fit is not None:
             params, data = fit.params, _without(data, applied)
-            fits["joint"] = fit
             left_out = _left_out_indices(applied)
-        outliers.update(outlier_counts(applied), rejection_passes=passes)
+            if noise == "estimate":  # the outliers inflated the first estimate
+                fit, data, passes = _estimate_noise(
+                    fn, fit, data, freeze + extra, hold, release, max_steps, throw
+                )
+                params = fit.params
+            fits["joint"] = fit
+        outliers.update(outlier_counts(applied), rejection_passes=passes_r)
+    if joint and "camera" in hold:
+        freeze = freeze + ("camera",)  # as the file records it: the joint solve held it
     # the gates judge the distances with the solved geometry (the start's gains differ
     # by up to ~7 %; the weights do not use them)
     data = _with_gain(data, params.camera, params.plane, params.board_poses, footprint)
@@ -286,7 +347,67 @@ def calibrate(
         axis_profile=cam_cal.axis_profile,
     )
     hints = (_tilt_hint(obs, cam_cal), hint)
-    return _gated(cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hints)
+    record = _noise_record(noise, stated, data, footprint, shift if joint else None)
+    if noise == "estimate" and joint:
+        record["iterations"] = int(passes)
+    return _gated(
+        cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hints, record
+    )
+
+
+def _estimate_noise(fn, fit, data, freeze, hold, release, max_steps, throw):
+    """Variance-component estimation (`trust._variance`): estimate each group's factor
+    at the solve's optimum, scale its σ, solve again, until the factors are within
+    tolerance of 1 (at most `MAX_ITERATIONS` solves).
+
+    **Returns:** `(fit, data, solves)`: the last solve, the data with the estimated σ,
+    and how many solves the estimation took (0: the σ already agreed)."""
+    for solves in range(MAX_ITERATIONS + 1):
+        vc = variance_components(fn, fit.params, data, fit.free_mask)
+        if vc.converged() or solves == MAX_ITERATIONS:
+            break
+        new = with_factors(data, vc)
+        try:
+            again = least_squares(
+                fn, fit.params, new, freeze=freeze, hold=hold, release=release,
+                max_steps=max_steps, throw=throw,
+            )  # fmt: skip
+        except (RankDeficientError, NotConvergedError):
+            break  # the last solve and its weights stand (its factors are reported)
+        fit, data = again, new
+    return fit, data, solves
+
+
+def _held_camera_note(shift, with_stage: bool) -> str:
+    return (
+        shift.message()
+        + ": the camera is kept as its corners determine it and the laser plane"
+        + (" and stage" if with_stage else "")
+        + " fitted to it (stripe points off their boards, a bent board, a line from "
+        "another view or stripe weights far too high pull a camera this far; look at the "
+        "stripe previews)"
+    )
+
+
+def _noise_record(noise: str, stated: dict, data, footprint_mm, shift) -> dict:
+    """What `Quality.noise` records: the σ the calibration used per group (px: the
+    stripes' across the line, from their distances off the boards through each view's
+    gain) and the stated ones."""
+    out = {"mode": noise, "stated_corner_px": stated["corner_px"]}
+    out["corner_px"] = float(data.sigma_corner_px)
+    if footprint_mm is not None:
+        out["stated_stripe_px"] = stated["stripe_px"]
+        mm = float(data.sigma_stripe_mm) * np.asarray(data.stripe_scale, dtype=np.float64)
+        has = np.asarray(data.stripe_w).sum(axis=1) > 0
+        gain = np.asarray(data.stripe_gain, dtype=np.float64)
+        px = np.where(has, mm / (footprint_mm * np.where(gain > 0, gain, 1.0)), np.nan)
+        out["stripe_px"] = [None if not math.isfinite(x) else float(x) for x in px]
+        out["stripe_mm"] = [float(x) if h else None for x, h in zip(mm, has)]
+        if data.gauge_w.size and float(np.asarray(data.gauge_w).sum()) > 0:
+            out["gauge_px"] = float(data.sigma_stripe_mm) / footprint_mm
+    if shift is not None:
+        out["camera_shift"] = shift.to_dict()
+    return out
 
 
 def _tilt_hint(obs: Observations, cam_cal):
@@ -428,8 +549,17 @@ def _stage_freeze(freeze, obs: Observations) -> tuple[str, ...]:
     return paths
 
 
-def _camera_only(cam_cal: CameraCalibration, obs, model, distortion, sigma_corner_px, robust):
-    """The `Calibration` of the camera solve alone (no laser plane, no stage)."""
+def _camera_only(
+    cam_cal: CameraCalibration, obs, model, distortion, sigma_corner_px, robust, noise
+):
+    """The `Calibration` of the camera solve alone (no laser plane, no stage); with
+    `noise="estimate"` the corners weighted by their σ as the solve's residuals give it
+    (one group: `s² = |r|² / (n − p)`)."""
+    if noise == "estimate":
+        fit = cam_cal.fit
+        n, p = int(fit.n_observations), len(fit.labels)
+        if n > p:
+            sigma_corner_px *= math.sqrt(2.0 * float(fit.cost) / (n - p))
     data = make_data(obs, sigma_corner_px=sigma_corner_px, robust=robust)
     params = SystemParams(cam_cal.camera, cam_cal.poses)
     return Calibration(

@@ -113,14 +113,24 @@ def register(subparsers) -> None:
         "--sigma-corner-px",
         type=float,
         default=0.03,
-        help="corner noise, weights the corners (default: %(default)s)",
+        help="corner noise (px): the start of the estimate, or with --noise stated the "
+        "weight of the corners (default: %(default)s)",
     )
     p.add_argument(
         "--sigma-stripe-px",
         type=float,
         default=0.05,  # calibrate._calibrate.SIGMA_STRIPE_PX (not imported: it loads JAX)
-        help="stripe-centre noise across the line (px), weights the stripe and gauge points; "
-        "a view's own measured noise (stripe_sigma_px) where larger (default: %(default)s)",
+        help="stripe-centre noise across the line (px): the start of the estimate, or "
+        "with --noise stated the weight of the stripe and gauge points; a view's own "
+        "measured noise (stripe_sigma_px) where larger (default: %(default)s)",
+    )
+    p.add_argument(
+        "--noise",
+        choices=("estimate", "stated"),
+        default="estimate",
+        help="estimate: each group's noise (corners, each view's stripe points, the gauge "
+        "scan) from the data, the stated sigma as a start; stated: the sigma as given, "
+        "and the gates compare the residuals with them (default: %(default)s)",
     )
     p.add_argument(
         "--robust",
@@ -316,6 +326,7 @@ def run(args) -> int:
             reject=args.reject or None,
             max_steps=args.max_steps,
             max_radius_px=args.max_radius_px,
+            noise=args.noise,
             throw=False,
             **({"opencv_flags": args.opencv_flags} if args.model == "opencv" else {}),
         )
@@ -326,8 +337,9 @@ def run(args) -> int:
     total = time.perf_counter() - t0
     extra = {
         "observations": str(args.observations),
-        "sigma_corner_px": args.sigma_corner_px,
-        "sigma_stripe_px": args.sigma_stripe_px,
+        # as stated; the weights used (estimated by default) are the file's own entries
+        "stated_sigma_corner_px": args.sigma_corner_px,
+        "stated_sigma_stripe_px": args.sigma_stripe_px,
         "robust": args.robust or None,
         "reject_sigma": args.reject or None,
         "total_time_s": total,

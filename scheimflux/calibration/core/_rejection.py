@@ -71,7 +71,9 @@ def _without(data: CalibrationData, masks) -> CalibrationData:
     return out
 
 
-def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw, hold=()):
+def _rejection_passes(
+    fn, start, params, data, freeze, reject, max_steps, throw, hold=(), *, release=None
+):
     """The rejection pass: leave out what lies beyond `reject` robust σ, solve again.
 
     A few gross outliers pull a least-squares solution so far that good neighbours (the
@@ -81,7 +83,8 @@ def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw,
     depth valley without converging) until the masks stop changing, at most
     `MAX_REJECTION_PASSES` times. Same shapes (weights 0): the compiled solver is reused.
     With `fn` None (no joint solve) the outliers are only counted. `hold`: paths held
-    at run time and reported free (the profiled axis point, `least_squares`'s `release`).
+    at run time; `release`: those of them reported free (`least_squares`'s; default:
+    all of `hold`, as the profiled axis point).
 
     **Returns:** `(fit or None, masks applied, number of passes)`.
     """
@@ -98,7 +101,7 @@ def _rejection_passes(fn, start, params, data, freeze, reject, max_steps, throw,
                 _without(data, masks),
                 freeze=freeze,
                 hold=hold,
-                release=hold,
+                release=hold if release is None else release,
                 max_steps=max_steps,
                 throw=throw,
             )

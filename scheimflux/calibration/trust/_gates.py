@@ -36,6 +36,21 @@ RMS_FACTOR = 3.0
 KURTOSIS_LIMIT = 2.0
 # More than this fraction of the corners or stripe points rejected fails the gate.
 REJECT_FRACTION_LIMIT = 0.1
+# Physical sanity. A focal length (px) below this fraction of the sensor's larger side
+# is a field of view over 2 atan(1 / (2 · 0.1)) = 157° across it: wider than any lens
+# the central camera models describe (a fisheye's equidistant f is ~0.3 of the side).
+MIN_FOCAL_FRACTION = 0.1
+# Pixels more than this far from square (fx / fy, either way): a 16:9 stream resized to
+# 4:3 gives 0.75; no sensor or resize comes near 4.
+MAX_ASPECT = 4.0
+# A principal point more than this many sensor sizes beyond the sensor's edge (a model
+# with its own sensor tilt, OpenCV's: the tilt does not move it there).
+MAX_PRINCIPAL_OUTSIDE = 1.0
+# Noise no real detector reaches on a sharp, in-focus image: corners scattering more
+# than this (px per coordinate) or laser-line centres (px across the line) mean the
+# model does not fit (or the wrong points were found), whatever the stated σ.
+CORNER_SIGMA_LIMIT_PX = 1.0
+STRIPE_SIGMA_LIMIT_PX = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +93,10 @@ class Quality:
     - `plane`: the laser plane's conditioning ([`plane_conditioning`][]), or None.
     - `hint`: where a gate failed, what to check first (also among the warnings), or
       None.
+    - `noise`: each residual group's σ as the calibration used it and as it was stated
+      (`calibrate(noise="estimate")` estimates them from the data: `trust._variance`),
+      and how far the joint solve moved the camera from its corners-only solve
+      (`camera_shift`); `{}` where not recorded.
     """
 
     gates: tuple[Gate, ...]
@@ -85,6 +104,7 @@ class Quality:
     warnings: tuple[str, ...] = ()
     plane: dict | None = None
     hint: str | None = None
+    noise: dict = dataclasses.field(default_factory=dict)
 
     @property
     def passed(self) -> bool:
@@ -101,6 +121,7 @@ class Quality:
             "rejected": dict(self.rejected),
             "warnings": list(self.warnings),
             "laser_plane": self.plane,
+            **({"noise": dict(self.noise)} if self.noise else {}),
         }
 
     def summary(self) -> str:
@@ -183,6 +204,56 @@ def axis_point_gate(x0: float, y0: float, width: int, height: int) -> Gate:
         "check the nominal tilt and magnification"
     )
     return Gate("axis point", ok, out, 0.0, "px outside", msg)
+
+
+def focal_length_gate(fx_px: float, fy_px: float, width: int, height: int) -> Gate:
+    """The focal lengths in pixels must be physical: at least `MIN_FOCAL_FRACTION` of the
+    sensor's larger side, and within `MAX_ASPECT` of each other; value: the smaller
+    focal length as a fraction of that side."""
+    side = float(max(width, height))
+    f_min = min(fx_px, fy_px)
+    value = f_min / side if side > 0 and math.isfinite(f_min) else -math.inf
+    aspect = max(fx_px, fy_px) / f_min if f_min > 0 else math.inf
+    ok = bool(value >= MIN_FOCAL_FRACTION and aspect <= MAX_ASPECT)
+    if ok:
+        msg = ""
+    elif not value >= MIN_FOCAL_FRACTION:
+        fov = 2.0 * math.degrees(math.atan(side / (2.0 * f_min))) if f_min > 0 else 180.0
+        msg = (
+            f"focal length {fx_px:.4g} x {fy_px:.4g} px on a {width} x {height} px sensor "
+            f"(a {fov:.0f}° field of view): no real lens; the solve collapsed (boards "
+            "placed next to the lens): a wrong start or wrong points"
+        )
+    else:
+        msg = (
+            f"focal lengths {fx_px:.4g} and {fy_px:.4g} px differ {aspect:.2g}x: pixels this "
+            "far from square exist on no sensor; the solve reached a wrong camera"
+        )
+    return Gate("focal length", ok, value, MIN_FOCAL_FRACTION, "of the sensor side", msg)
+
+
+def principal_point_gate(cx: float, cy: float, width: int, height: int) -> Gate:
+    """The principal point of a model with its own sensor tilt must lie within
+    `MAX_PRINCIPAL_OUTSIDE` sensor sizes of the sensor; value: its distance outside the
+    sensor in sensor sizes."""
+    du = max(-cx, cx - width, 0.0) / max(width, 1)
+    dv = max(-cy, cy - height, 0.0) / max(height, 1)
+    out = math.hypot(du, dv) if math.isfinite(cx + cy) else math.inf
+    ok = bool(out <= MAX_PRINCIPAL_OUTSIDE)
+    msg = (
+        ""
+        if ok
+        else f"principal point ({cx:.1f}, {cy:.1f}) px lies {out:.2g} sensor sizes off the "
+        f"{width} x {height} px sensor: no real camera; the solve reached a wrong camera"
+    )
+    return Gate("principal point", ok, out, MAX_PRINCIPAL_OUTSIDE, "sensor sizes", msg)
+
+
+def noise_gate(name: str, sigma: float, limit: float, unit: str, advice: str) -> Gate:
+    """An estimated noise σ must stay below what real data reach (`limit`)."""
+    ok = bool(math.isfinite(sigma) and sigma <= limit)
+    msg = "" if ok else f"the {name} scatter {sigma:.3g} {unit} (at most {limit:g}): {advice}"
+    return Gate(f"{name} noise", ok, sigma, limit, unit, msg)
 
 
 def sensor_side_gate(z0: float) -> Gate:

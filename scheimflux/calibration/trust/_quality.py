@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import numpy as np
 
 from ...camera._noncentral import ThickLensNonCentral
+from ...camera._opencv import OpenCVCamera
 from ...camera._pinhole import Pinhole
 from ...camera._thick_lens import ThickLensScheimpflug
 from ...geometry._coverage import clip_to_radius, coverage_from_data
@@ -16,10 +18,15 @@ from ..core._rejection import _block_residuals
 from ..core._result import Calibration
 from ..core._screen import board_plane_angles_deg
 from ._gates import (
+    CORNER_SIGMA_LIMIT_PX,
+    STRIPE_SIGMA_LIMIT_PX,
     Quality,
     QualityError,
     axis_point_gate,
+    focal_length_gate,
     fraction_gate,
+    noise_gate,
+    principal_point_gate,
     rms_gate,
     sensor_side_gate,
     tails_gate,
@@ -34,14 +41,15 @@ def _gated(
     throw: bool,
     notes: tuple[str, ...] = (),
     hint=None,
+    noise: dict | None = None,
 ) -> Calibration:
     """`cal` with its quality gates assessed and its coverage of the sensor recorded;
     `QualityError` (with `throw`) if a gate fails. `notes`: the solves' decisions and
     findings (the pupil terms' test, the gauge profile's), added to the warnings.
     `hint`: what to check first, said (in the error and the warnings) only when a gate
     fails: a string, None, or a sequence of them and of functions that return one (run
-    only then)."""
-    quality = assess_quality(cal, rejected, conditioning)
+    only then). `noise`: the σ used and stated (`Quality.noise`)."""
+    quality = assess_quality(cal, rejected, conditioning, noise)
     hint = None if quality.passed else _hint_text(hint)
     if hint is not None:
         notes = (*notes, hint)
@@ -142,42 +150,73 @@ def _other_start(init: str) -> str:
     return "the nominal tilt (--init nominal)" if init == "closed-form" else "--init closed-form"
 
 
-def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) -> Quality:
-    """The quality gates of a calibration (see `scheimflux.calibration.trust._gates`)."""
+def assess_quality(
+    cal: Calibration, rejected: dict, plane_info: dict | None, noise: dict | None = None
+) -> Quality:
+    """The quality gates of a calibration (see `scheimflux.calibration.trust._gates`).
+
+    `noise` (`Quality.noise`): with `mode` `"estimate"` the σ of the data are the
+    estimated ones, so the RMS gates (residuals against σ) would pass by construction:
+    the estimated σ are judged against what real data reach instead, and a σ far from
+    the stated one is a warning."""
     params, data = cal.params, cal.data
     W, H = cal.sensor_size
+    noise = dict(noise or {})
+    estimated = noise.get("mode") == "estimate"
     sigma_c = float(data.sigma_corner_px)
     sigma_s = float(data.sigma_stripe_mm)
-    gates = [
-        rms_gate(
-            "reprojection",
-            cal.reprojection_rms_px,
-            sigma_c,
-            "px",
-            "the camera model does not fit the corners (a bad start converged to a wrong "
-            "camera, a missing distortion model, or a wrong --sigma-corner-px); try "
-            + _other_start(cal.init),
-        )
-    ]
+    fit_advice = (
+        "the camera model does not fit the corners (a bad start converged to a wrong "
+        "camera, a missing distortion model, or a wrong --sigma-corner-px); try "
+        + _other_start(cal.init)
+    )
     warnings = []
+    if estimated:
+        gates = [noise_gate("corner", sigma_c, CORNER_SIGMA_LIMIT_PX, "px", fit_advice)]
+        note = _stated_note("corners", sigma_c, noise.get("stated_corner_px"), "--sigma-corner-px")
+        if note:
+            warnings.append(note)
+    else:
+        gates = [rms_gate("reprojection", cal.reprojection_rms_px, sigma_c, "px", fit_advice)]
     err, stripe, gauge = _block_residuals(params, data)
     cw, sw, gw = (np.asarray(w) > 0 for w in (data.corner_w, data.stripe_w, data.gauge_w))
     gates.append(tails_gate("corner", (err / sigma_c)[cw].reshape(-1)))
     n_out = int(rejected.get("corner_outliers", 0) or 0)
     gates.append(fraction_gate("corners", n_out, int(cw.sum()) + n_out))
     if params.plane is not None and sw.any():
-        gates.append(
-            rms_gate(
-                "stripe",
-                cal.plane_rms_mm,
-                stripe_sigma_rms_mm(data),
-                "mm",
-                "the board stripe points do not lie on one laser plane (stripes from the "
-                "wrong views, reflections, or a wrong --sigma-stripe-px; the σ is each "
-                "view's pixel σ as it moves the points off their boards, "
-                "diagnostics.stripe_gain)",
+        if estimated and noise.get("stripe_px") is not None:
+            px = np.array([np.nan if x is None else x for x in noise["stripe_px"]])
+            worst = int(np.nanargmax(px))
+            gates.append(
+                noise_gate(
+                    "stripe",
+                    float(px[worst]),
+                    STRIPE_SIGMA_LIMIT_PX,
+                    "px",
+                    f"view {worst}'s laser-line points lie that far off its board's plane "
+                    "(points off the board, a bent board, reflections, or the line of "
+                    "another view)",
+                )
             )
-        )
+            med = float(np.nanmedian(px))
+            note = _stated_note(
+                "laser-line centres", med, noise.get("stated_stripe_px"), "--sigma-stripe-px"
+            )
+            if note:
+                warnings.append(note + " (median over the views)")
+        else:
+            gates.append(
+                rms_gate(
+                    "stripe",
+                    cal.plane_rms_mm,
+                    stripe_sigma_rms_mm(data),
+                    "mm",
+                    "the board stripe points do not lie on one laser plane (stripes from the "
+                    "wrong views, reflections, or a wrong --sigma-stripe-px; the σ is each "
+                    "view's pixel σ as it moves the points off their boards, "
+                    "diagnostics.stripe_gain)",
+                )
+            )
         gates.append(tails_gate("stripe", stripe[sw]))
         n_out = int(rejected.get("stripe_outliers", 0) or 0)
         gates.append(fraction_gate("stripe points", n_out, int(sw.sum()) + n_out))
@@ -192,7 +231,18 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
                 f"{float(angles.min()):.2g}°): their stripe lines are poorly determined; "
                 "tilt the boards against the laser plane"
             )
-    if cal.gauge_rms_mm is not None:
+    if cal.gauge_rms_mm is not None and estimated and noise.get("gauge_px") is not None:
+        gates.append(
+            noise_gate(
+                "gauge",
+                float(noise["gauge_px"]),
+                STRIPE_SIGMA_LIMIT_PX,
+                "px",
+                "the gauge scan does not fit a cylinder of the gauge radius about the table "
+                "axis (wrong gauge radius, or Δω)",
+            )
+        )
+    elif cal.gauge_rms_mm is not None:
         gates.append(
             rms_gate(
                 "gauge",
@@ -222,6 +272,7 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
     if note is not None:
         warnings.append(note)
     cam = params.camera
+    gates.extend(physical_gates(cam, W, H))
     if isinstance(cam, (ThickLensScheimpflug, ThickLensNonCentral)):
         gates.append(axis_point_gate(float(cam.x0), float(cam.y0), W, H))
         gates.append(sensor_side_gate(float(cam.z0)))
@@ -239,4 +290,39 @@ def assess_quality(cal: Calibration, rejected: dict, plane_info: dict | None) ->
             warnings.append(f"the {name} solve did not converge ({fit.message})")
     if not cal.joint and rejected.get("threshold_sigma") is not None:
         warnings.append("outliers are counted but not left out without the joint solve")
-    return Quality(tuple(gates), dict(rejected), tuple(warnings), plane_info)
+    return Quality(tuple(gates), dict(rejected), tuple(warnings), plane_info, noise=noise)
+
+
+def physical_gates(cam, width: int, height: int) -> list:
+    """The gates no real camera fails: a focal length (px) of a physical lens and, for
+    OpenCV's model (which has its own sensor tilt), a principal point near the sensor."""
+    if width <= 0 or height <= 0:
+        return []
+    if isinstance(cam, OpenCVCamera):
+        fx, fy = float(cam.fx), float(cam.fy)
+        return [
+            focal_length_gate(fx, fy, width, height),
+            principal_point_gate(float(cam.cx), float(cam.cy), width, height),
+        ]
+    if isinstance(cam, Pinhole):
+        return [focal_length_gate(float(cam.alpha), float(cam.beta), width, height)]
+    if isinstance(cam, (ThickLensScheimpflug, ThickLensNonCentral)):
+        return [focal_length_gate(float(cam.f / cam.dx), float(cam.f / cam.dy), width, height)]
+    return []
+
+
+# A stated σ this many times off the data's is said (the calibration uses the data's).
+STATED_RATIO_NOTE = 3.0
+
+
+def _stated_note(what: str, sigma: float, stated, option: str) -> str | None:
+    """A note where the data's σ is far from the stated one."""
+    if stated is None or not stated > 0 or not math.isfinite(sigma):
+        return None
+    ratio = sigma / float(stated)
+    if 1.0 / STATED_RATIO_NOTE <= ratio <= STATED_RATIO_NOTE:
+        return None
+    return (
+        f"the {what} scatter {sigma:.3g} px, {ratio:.2g}x the stated {float(stated):g} px "
+        f"({option}): the calibration weights them by the scatter the data show"
+    )
