@@ -47,12 +47,25 @@ from .core._rejection import (
 )
 from .core._result import Calibration
 from .core._screen import REJECT_SIGMA, screen_field, screen_observations
-from .core._solve import NotConvergedError, RankDeficientError, free_spec, least_squares
+from .core._solve import NotConvergedError, RankDeficientError, least_squares
 from .core._stage import _gauge_rms, calibrate_stage
 from .core._stage_table import stage_extra_freeze, table_target_start
 from .trust._quality import _gated, _hint_text
 from .trust._shift import camera_shift
-from .trust._variance import MAX_ITERATIONS, variance_components, with_factors
+from .trust._variance import (
+    MAX_ITERATIONS,
+    TOLERANCE,
+    sigma_change,
+    variance_components,
+    with_factors,
+)
+
+# What the joint solve holds where the laser lines would bend the corners' geometry, and
+# how much more the corners may scatter in the joint solve than alone before it does (with
+# a camera consistent with its lines they scatter alike: the lines add a few parameters'
+# worth of pull).
+HELD_GEOMETRY = ("camera", "board_poses")
+CORNER_INFLATION = 1.5
 
 # How the residual groups' σ are set: estimated from the data (the stated σ as priors), or
 # as stated.
@@ -249,13 +262,6 @@ def calibrate(
     if joint:
         fn = joint_residuals if stage is not None else camera_plane_residuals
         extra = stage_extra_freeze(obs) if stage is not None else ()
-        if noise == "estimate":
-            # each group's σ from the separate steps' residuals (the camera's corners,
-            # each view's stripe points about the plane fitted to them): the joint solve
-            # then starts with the data's balance of corners and lines, not the stated
-            # one, which can pull the camera far (a line weighted 20x too high)
-            vc = variance_components(fn, params, data, free_spec(params, freeze + extra))
-            data = with_factors(data, vc)
         try:
             fit = least_squares(
                 fn,
@@ -277,24 +283,31 @@ def calibrate(
                 raise NotConvergedError(message, err.fit) from None
             raise RankDeficientError(message) from None
         release = hold  # held at run time, reported free (the profiled axis point)
-        # the laser lines may refine the camera within what its corners allow; a move
-        # beyond (checked after the first solve and after the noise estimate, which can
-        # follow a collapsing camera: stripe distances in mm shrink with the scene) keeps
-        # the corners' camera, held at run time in the joint solve's compiled program
+        # The laser lines may refine the camera within what its corners allow. Beyond it
+        # (checked after the first solve and after the noise estimate: a collapsing
+        # camera shrinks the stripe distances in mm, and the estimate follows it), or
+        # where the joint solve's corners scatter far more than the corners-only
+        # solve's (the lines bending the board poses), the camera and the board poses
+        # are kept as the corners determine them and the laser plane (and stage) fitted
+        # to them: held at run time, in the joint solve's compiled program.
         shift, weights = camera_shift(cam_cal.fit, fit), data
+        stated_data, solves = data, 0  # the stated σ: the noise estimate's floor
+        corners_alone = _corners_alone_px(cam_cal.fit, sigma_corner_px)
         for _ in range(2):
-            if shift is not None and shift.moved and "camera" not in hold:
-                hold, data = hold + ("camera",), weights  # the weights before it moved
+            finding = _held_finding(shift, data, corners_alone)
+            if finding is not None and "camera" not in hold:
+                hold, data = hold + HELD_GEOMETRY, weights  # the weights before it moved
                 fit = least_squares(
                     fn, start, data, freeze=freeze + extra, hold=hold, release=release,
                     max_steps=max_steps, throw=throw,
                 )  # fmt: skip
-                notes += (_held_camera_note(shift, stage is not None),)
+                notes += (_held_camera_note(finding, stage is not None),)
             if noise != "estimate":
                 break
             fit, data, passes = _estimate_noise(
-                fn, fit, data, freeze + extra, hold, release, max_steps, throw
+                fn, fit, data, freeze + extra, hold, release, max_steps, throw, stated_data
             )
+            solves += passes
             if "camera" in hold:
                 break
             shift = camera_shift(cam_cal.fit, fit)
@@ -320,13 +333,14 @@ def calibrate(
             left_out = _left_out_indices(applied)
             if noise == "estimate":  # the outliers inflated the first estimate
                 fit, data, passes = _estimate_noise(
-                    fn, fit, data, freeze + extra, hold, release, max_steps, throw
+                    fn, fit, data, freeze + extra, hold, release, max_steps, throw, stated_data
                 )
+                solves += passes
                 params = fit.params
             fits["joint"] = fit
         outliers.update(outlier_counts(applied), rejection_passes=passes_r)
     if joint and "camera" in hold:
-        freeze = freeze + ("camera",)  # as the file records it: the joint solve held it
+        freeze = freeze + HELD_GEOMETRY  # as the file records it: the joint solve held them
     # the gates judge the distances with the solved geometry (the start's gains differ
     # by up to ~7 %; the weights do not use them)
     data = _with_gain(data, params.camera, params.plane, params.board_poses, footprint)
@@ -347,61 +361,93 @@ def calibrate(
         axis_profile=cam_cal.axis_profile,
     )
     hints = (_tilt_hint(obs, cam_cal), hint)
-    record = _noise_record(noise, stated, data, footprint, shift if joint else None)
+    record = _noise_record(
+        noise, stated, data, footprint, shift if joint else None, stated_data if joint else None
+    )
     if noise == "estimate" and joint:
-        record["iterations"] = int(passes)
+        record["solves"] = int(solves)  # the re-solves the estimate took
     return _gated(
         cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hints, record
     )
 
 
-def _estimate_noise(fn, fit, data, freeze, hold, release, max_steps, throw):
+def _estimate_noise(fn, fit, data, freeze, hold, release, max_steps, throw, floor):
     """Variance-component estimation (`trust._variance`): estimate each group's factor
-    at the solve's optimum, scale its σ, solve again, until the factors are within
-    tolerance of 1 (at most `MAX_ITERATIONS` solves).
+    at the solve's optimum, scale its σ (never below `floor`'s, the stated σ), solve
+    again, until no σ changes by more than half the tolerance (at most `MAX_ITERATIONS`
+    solves). A re-solve that fails (rank, convergence) ends it with the last solve.
 
     **Returns:** `(fit, data, solves)`: the last solve, the data with the estimated σ,
     and how many solves the estimation took (0: the σ already agreed)."""
     for solves in range(MAX_ITERATIONS + 1):
         vc = variance_components(fn, fit.params, data, fit.free_mask)
-        if vc.converged() or solves == MAX_ITERATIONS:
+        new = with_factors(data, vc, floor)
+        if sigma_change(data, new) <= 0.5 * TOLERANCE or solves == MAX_ITERATIONS:
             break
-        new = with_factors(data, vc)
         try:
             again = least_squares(
                 fn, fit.params, new, freeze=freeze, hold=hold, release=release,
                 max_steps=max_steps, throw=throw,
             )  # fmt: skip
         except (RankDeficientError, NotConvergedError):
-            break  # the last solve and its weights stand (its factors are reported)
+            break  # the last solve and its weights stand
         fit, data = again, new
     return fit, data, solves
 
 
-def _held_camera_note(shift, with_stage: bool) -> str:
+def _corners_alone_px(fit, sigma_corner_px: float) -> float:
+    """The corners' σ (px) as the corners-only solve's residuals give it."""
+    n, p = int(fit.n_observations), len(fit.labels)
+    return sigma_corner_px * math.sqrt(2.0 * float(fit.cost) / (n - p)) if n > p else math.nan
+
+
+def _held_finding(shift, data, corners_alone_px: float) -> str | None:
+    """Why the joint solve's camera and board poses are not to be trusted, or None: the
+    camera moved beyond its corners' covariance ([`camera_shift`][]), or the corners
+    scatter more than `CORNER_INFLATION` x as much as in the corners-only solve."""
+    if shift is not None and shift.moved:
+        return shift.message()
+    sigma = float(data.sigma_corner_px)
+    if sigma > CORNER_INFLATION * corners_alone_px:
+        return (
+            f"in the joint solve the corners scatter {sigma:.3g} px, "
+            f"{sigma / corners_alone_px:.2g}x their {corners_alone_px:.3g} px in the "
+            "corners-only solve: the laser lines bend the board poses"
+        )
+    return None
+
+
+def _held_camera_note(finding: str, with_stage: bool) -> str:
     return (
-        shift.message()
-        + ": the camera is kept as its corners determine it and the laser plane"
-        + (" and stage" if with_stage else "")
-        + " fitted to it (stripe points off their boards, a bent board, a line from "
-        "another view or stripe weights far too high pull a camera this far; look at the "
-        "stripe previews)"
+        finding
+        + ": the camera and the board poses are kept as the corners determine them and "
+        "the laser plane" + (" and stage" if with_stage else "") + " fitted to them (stripe "
+        "points off their boards, a bent board, a line from another view or stripe "
+        "weights far too high pull them this far; look at the stripe previews)"
     )
 
 
-def _noise_record(noise: str, stated: dict, data, footprint_mm, shift) -> dict:
-    """What `Quality.noise` records: the σ the calibration used per group (px: the
-    stripes' across the line, from their distances off the boards through each view's
-    gain) and the stated ones."""
+def _noise_record(noise: str, stated: dict, data, footprint_mm, shift, floor=None) -> dict:
+    """What `Quality.noise` records: the σ the calibration used per group and the stated
+    ones, in px. A view's stripe σ raised by the estimate is of its distances off the
+    board, in px across the line through the view's gain (`_plane.stripe_gain`); one at
+    the stated floor (`floor`: the data with the stated σ) is the stated."""
     out = {"mode": noise, "stated_corner_px": stated["corner_px"]}
     out["corner_px"] = float(data.sigma_corner_px)
     if footprint_mm is not None:
         out["stated_stripe_px"] = stated["stripe_px"]
-        mm = float(data.sigma_stripe_mm) * np.asarray(data.stripe_scale, dtype=np.float64)
+        scale = np.asarray(data.stripe_scale, dtype=np.float64)
+        mm = float(data.sigma_stripe_mm) * scale
         has = np.asarray(data.stripe_w).sum(axis=1) > 0
         gain = np.asarray(data.stripe_gain, dtype=np.float64)
-        px = np.where(has, mm / (footprint_mm * np.where(gain > 0, gain, 1.0)), np.nan)
-        out["stripe_px"] = [None if not math.isfinite(x) else float(x) for x in px]
+        own = np.asarray((floor if floor is not None else data).stripe_scale, np.float64)
+        px = stated["stripe_px"] * own  # the stated (a view's own measured where larger)
+        if noise == "estimate" and floor is not None:
+            low = float(floor.sigma_stripe_mm) * own
+            raised = mm > low * (1.0 + 1e-9)
+            est = mm / (footprint_mm * np.where(gain > 0, gain, 1.0))
+            px = np.where(raised, est, px)
+        out["stripe_px"] = [float(x) if h else None for x, h in zip(px, has)]
         out["stripe_mm"] = [float(x) if h else None for x, h in zip(mm, has)]
         if data.gauge_w.size and float(np.asarray(data.gauge_w).sum()) > 0:
             out["gauge_px"] = float(data.sigma_stripe_mm) / footprint_mm

@@ -15,7 +15,11 @@ its weighted residuals' sum of squares over its redundancy (Förstner's estimato
 redundancies add up to n − p). `s²_g = 1` where the stated σ is the noise; otherwise the
 group's σ is multiplied by `s_g` and the problem solved again, until every factor is
 within `TOLERANCE` of 1 ([`variance_components`][] gives one step; the workflow,
-`calibration._calibrate`, iterates). A group with less redundancy than
+`calibration._calibrate`, iterates). The stated σ is a floor (as a view's own measured
+stripe σ is): the data raise a σ that was stated too small — the usual case on real
+photographs — but do not lower one below what the user stated; stripes weighted far
+above the pixel footprint's σ also leave the thick lens's depth gauge below the rank
+check's resolution. A group with less redundancy than
 `MIN_REDUNDANCY` takes the pooled factor of its kind (a view with a handful of stripe
 points cannot tell its own noise).
 """
@@ -23,7 +27,6 @@ points cannot tell its own noise).
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import equinox as eqx
 import jax
@@ -31,7 +34,13 @@ import numpy as np
 
 from ..core._solve import linearised
 
-__all__ = ["TOLERANCE", "VarianceComponents", "variance_components", "with_factors"]
+__all__ = [
+    "TOLERANCE",
+    "VarianceComponents",
+    "sigma_change",
+    "variance_components",
+    "with_factors",
+]
 
 # Factors within this of 1 (σ within about half of it) end the iteration.
 TOLERANCE = 0.1
@@ -59,10 +68,13 @@ class VarianceComponents:
     gauge: float | None
     redundancy: dict
 
+    def factors(self) -> list[float]:
+        return [self.corners, *self.stripes.tolist()] + ([] if self.gauge is None else [self.gauge])
+
     def converged(self, tolerance: float = TOLERANCE) -> bool:
         """Whether every factor is within `tolerance` of 1."""
-        f = [self.corners, *self.stripes.tolist()] + ([] if self.gauge is None else [self.gauge])
-        return all(abs(x - 1.0) <= tolerance for x in f)
+        return all(abs(x - 1.0) <= tolerance for x in self.factors())
+
 
 
 def _group_bounds(data, params) -> dict:
@@ -149,16 +161,27 @@ def variance_components(fn, params, data, spec) -> VarianceComponents:
     return VarianceComponents(float(corners), stripes, gauge, redundancy)
 
 
-def with_factors(data, vc: VarianceComponents):
-    """`data` with each group's σ multiplied by the square root of its factor.
+def _sigmas(data) -> np.ndarray:
+    """The groups' σ as the residuals use them: corners (px), each view's stripes and the
+    gauge scan (mm)."""
+    s = float(data.sigma_stripe_mm)
+    scale = np.asarray(data.stripe_scale, dtype=np.float64)
+    return np.concatenate([[float(data.sigma_corner_px)], s * scale, [s]])
+
+
+def with_factors(data, vc: VarianceComponents, floor=None):
+    """`data` with each group's σ multiplied by the square root of its factor, and no
+    smaller than `floor`'s (the stated σ: a prior that the data may raise, not lower).
 
     Corners (and table-target corners): `sigma_corner_px`. The gauge scan (and the
     table target's laser line): `sigma_stripe_mm`; each view's stripes keep their own
     factor through `stripe_scale` (relative to `sigma_stripe_mm`)."""
     g = 1.0 if vc.gauge is None else vc.gauge
-    sigma_c = float(data.sigma_corner_px) * math.sqrt(vc.corners)
-    sigma_s = float(data.sigma_stripe_mm) * math.sqrt(g)
-    scale = np.asarray(data.stripe_scale, dtype=np.float64) * np.sqrt(vc.stripes / g)
+    f = np.concatenate([[vc.corners], vc.stripes, [g]])
+    sigma = _sigmas(data) * np.sqrt(f)
+    if floor is not None:
+        sigma = np.maximum(sigma, _sigmas(floor))
+    sigma_s = sigma[-1]
 
     def put(a):
         return jax.device_put(np.asarray(a, dtype=np.float64))
@@ -166,5 +189,10 @@ def with_factors(data, vc: VarianceComponents):
     return eqx.tree_at(
         lambda d: (d.sigma_corner_px, d.sigma_stripe_mm, d.stripe_scale),
         data,
-        (put(sigma_c), put(sigma_s), put(scale)),
+        (put(sigma[0]), put(sigma_s), put(sigma[1:-1] / sigma_s)),
     )
+
+
+def sigma_change(old, new) -> float:
+    """The largest |log| ratio of a group's σ between two data (0: unchanged)."""
+    return float(np.max(np.abs(np.log(_sigmas(new) / _sigmas(old)))))
