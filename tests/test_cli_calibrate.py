@@ -5,6 +5,7 @@ command's plumbing: arguments, summary, files, errors. The `slow` tests run the 
 calibration on a small ray-traced data set.
 """
 
+import dataclasses
 import importlib
 import json
 import math
@@ -246,8 +247,11 @@ def test_reconstruct_reports_invalid_points(tmp_path, capsys):
     # on one side meet it in front of the camera, on the other side behind it.
     cal = make_calibration(_thick_lens(), stage=False)
     cam = cal.params.camera
-    cal.params = type(cal.params)(
-        cam, cal.params.board_poses, LaserPlane(jnp.array([0.2, 0.0, 0.0])), None, None
+    cal = dataclasses.replace(
+        cal,
+        params=type(cal.params)(
+            cam, cal.params.board_poses, LaserPlane(jnp.array([0.2, 0.0, 0.0])), None, None
+        ),
     )
     write_calibration(tmp_path / "c.json", cal)
     c = np.asarray(cam.project(jnp.array([[0.0, 0.0, 150.0]])))[0]

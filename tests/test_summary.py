@@ -1,6 +1,7 @@
 """The calibration summary as a library function: the text reads back the numbers of the
 model it describes, and `scheimflux calibrate` prints exactly that text."""
 
+import dataclasses
 import importlib
 import json
 import math
@@ -76,8 +77,9 @@ def test_summary_frozen_override_missing_numbers_and_camera_only():
     assert fixed == {"e", "k1", "k2", "k3", "p1", "p2"}  # a block path marks its members
     doc["diagnostics"]["reprojection_rms_px"] = None
     assert "reprojection RMS: n/a px" in format_summary(doc)
-    cal.params = SystemParams(cal.params.camera, cal.params.board_poses)
-    cal.gauge_rms_mm = None
+    cal = dataclasses.replace(
+        cal, params=SystemParams(cal.params.camera, cal.params.board_poses), gauge_rms_mm=None
+    )
     text = calibration_summary(cal)
     assert "laser plane: none (camera-only calibration)" in text
     assert "stage: not calibrated" in text
