@@ -100,7 +100,8 @@ def test_camera_shift_is_the_chi_square_of_the_move_in_the_corners_covariance():
     assert shift.d2 == pytest.approx(1 + 4 + 0 + 9 + 0.25, rel=1e-9)
     assert shift.worst[0] == "camera.x0" and shift.worst[3] == pytest.approx(sigma[3])
     assert shift.limit == pytest.approx(chi2_quantile(5)) and not shift.moved
-    far = dataclasses.replace(params, camera=dataclasses.replace(params.camera, alpha=1000.0 + 5 * sigma[0]))
+    far_camera = dataclasses.replace(params.camera, alpha=1000.0 + 5 * sigma[0])
+    far = dataclasses.replace(params, camera=far_camera)
     far_shift = camera_shift(camera, _fit(far, spec, None, 0.0, n))
     assert far_shift.d2 == pytest.approx(25.0) and far_shift.moved == (25.0 > chi2_quantile(5))
     assert camera_shift(_fit(params, spec, None, cost, n), joint) is None  # no JᵀJ kept

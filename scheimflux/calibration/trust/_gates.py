@@ -158,8 +158,34 @@ class Quality:
                 else ""
             ),
         ]
+        if self.noise:
+            lines.append("  " + _noise_line(self.noise))
         lines.extend(f"  warning: {w}" for w in self.warnings)
         return "\n".join(lines)
+
+
+def _noise_line(noise: dict) -> str:
+    """One line: the σ the calibration used per group, and the stated."""
+    how = "estimated from the data" if noise.get("mode") == "estimate" else "as stated"
+    text = (
+        f"noise ({how}): corners {noise['corner_px']:.3g} px "
+        f"(stated {noise['stated_corner_px']:g})"
+    )
+    px = [x for x in noise.get("stripe_px") or () if x is not None]
+    if px:
+        text += (
+            f"; laser line {min(px):.3g}-{max(px):.3g} px across it per view "
+            f"(stated {noise['stated_stripe_px']:g})"
+        )
+    if noise.get("gauge_px") is not None:
+        text += f"; gauge scan {noise['gauge_px']:.3g} px"
+    shift = noise.get("camera_shift")
+    if shift:
+        held = "held at the corners' camera" if shift["moved"] else "within the corners' σ"
+        text += (
+            f"; joint camera {held} (chi-square {shift['d2']:.3g}, limit {shift['limit']:.3g})"
+        )
+    return text
 
 
 class QualityError(ValueError):
