@@ -108,9 +108,15 @@ def test_left_out_observations_come_back_from_the_file(scene, tmp_path):
 
 
 def test_understated_noise_fails_the_reprojection_gate(scene):
-    # the simulated corner noise is 0.03 px: stated as 0.005 px, the RMS is 6× the σ
+    # the simulated corner noise is 0.03 px: stated as 0.005 px (and taken as stated),
+    # the RMS is 6× the σ
     with pytest.raises(QualityError, match=r"reprojection RMS 0.03\d* px is 6.\d*× the stated"):
-        calibrate(scene[0], distortion="none", sigma_corner_px=0.005)
+        calibrate(scene[0], distortion="none", sigma_corner_px=0.005, noise="stated")
+    # by default the σ is estimated from the data: the calibration passes and says so
+    cal = calibrate(scene[0], distortion="none", sigma_corner_px=0.005)
+    assert cal.quality.noise["corner_px"] == pytest.approx(0.03, rel=0.15)
+    said = [w for w in cal.quality.warnings if "corners scatter 0.03" in w]
+    assert said and "the stated 0.005" in said[0]
 
 
 def test_uncertainty_of_every_free_parameter_is_reported(clean):
@@ -486,7 +492,8 @@ def correlated(scene):
         for c, s in zip(truth.corners_px, truth.stripe_px)
     ]
     obs = dataclasses.replace(obs, views=views)
-    return calibrate(obs, distortion="none"), obs
+    # as stated (0.05 px): the correlation, not a re-estimated σ, is what raises the σ
+    return calibrate(obs, distortion="none", noise="stated"), obs
 
 
 def test_sigma_count_correlated_centres_and_nothing_else_changes(correlated, clean):

@@ -161,7 +161,7 @@ def test_the_stripe_gate_judges_the_distances_by_their_own_sigma(traced):
     # pixel noise), where the footprint's σ made it 0.21 of it. ~3000 points: the RMS
     # is known to 1/sqrt(2N) = 1.3 %, the per-view median gain to +-3 % along a line
     obs, _ = traced
-    cal = calibrate(obs)
+    cal = calibrate(obs, noise="stated")  # the gate of the stated σ
     ratio = cal.plane_rms_mm / stripe_sigma_rms_mm(cal.data)
     assert 0.9 < ratio < 1.1
     # ... so a line 4x noisier than stated is refused at 1.37x the limit (the footprint's
@@ -172,4 +172,4 @@ def test_the_stripe_gate_judges_the_distances_by_their_own_sigma(traced):
         for v in obs.views
     ]
     with pytest.raises(QualityError, match=r"stripe RMS [\d.e-]+ mm is [3-9][\d.]*× the stated"):
-        calibrate(dataclasses.replace(obs, views=noisy))
+        calibrate(dataclasses.replace(obs, views=noisy), noise="stated")

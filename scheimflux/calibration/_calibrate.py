@@ -47,7 +47,7 @@ from .core._rejection import (
 )
 from .core._result import Calibration
 from .core._screen import REJECT_SIGMA, screen_field, screen_observations
-from .core._solve import NotConvergedError, RankDeficientError, least_squares
+from .core._solve import NotConvergedError, RankDeficientError, free_spec, least_squares
 from .core._stage import _gauge_rms, calibrate_stage
 from .core._stage_table import stage_extra_freeze, table_target_start
 from .trust._quality import _gated, _hint_text
@@ -162,14 +162,14 @@ def calibrate(
       fixes its weak directions (see [`calibrate_camera`][]; docs/noncentral.md). With
       `"profile"` the joint solve holds the axis point at the camera profile's value and
       the covariance has it free.
-    - `noise`: `"estimate"` (default): each group's σ from the data (above); `"stated"`:
-      the σ as given (the gates then compare the residuals with them).
     - `max_radius_px`: calibrate inside this distance (px) from the sensor's centre
       only: every corner, stripe and gauge pixel beyond it is left out and counted
       ([`screen_field`][]); for a lens that vignettes the outer field, where a spot's
       centroid is not the image of one ray (docs/noncentral.md). The coverage, and so
       `reconstruct`'s flag on extrapolated points, follows the data kept. None: the
       whole sensor.
+    - `noise`: `"estimate"` (default): each group's σ from the data (above); `"stated"`:
+      the σ as given (the gates then compare the residuals with them).
 
     **Returns:** a [`Calibration`][]: the parameter pytree (camera, board poses, laser
     plane, stage, eccentricity), every solve's `Fit`, the RMS figures, the data the
@@ -313,6 +313,11 @@ def calibrate(
             shift = camera_shift(cam_cal.fit, fit)
         params = fit.params
         fits["joint"] = fit
+    elif noise == "estimate":  # the paper's sequence: each group's σ at its own optimum
+        fn = joint_residuals if stage is not None else camera_plane_residuals
+        stated_data, solves = data, 0
+        spec = free_spec(params, freeze + (stage_extra_freeze(obs) if stage is not None else ()))
+        data = with_factors(data, variance_components(fn, params, data, spec), data)
     outliers = {"threshold_sigma": reject}
     left_out = None  # set where the rejection pass re-solved without them
     if reject is not None:
@@ -362,8 +367,9 @@ def calibrate(
     )
     hints = (_tilt_hint(obs, cam_cal), hint)
     record = _noise_record(
-        noise, stated, data, footprint, shift if joint else None, stated_data if joint else None
-    )
+        noise, stated, data, footprint, shift if joint else None,
+        stated_data if noise == "estimate" else None,
+    )  # fmt: skip
     if noise == "estimate" and joint:
         record["solves"] = int(solves)  # the re-solves the estimate took
     return _gated(

@@ -34,7 +34,8 @@ class CameraShift:
     **Fields:** `d2`: Mahalanobis distance squared in the corners' covariance; `limit`:
     its chi-square quantile at `1 − TAIL`; `dof`: camera parameters compared; `worst`:
     `(label, corners-only value, joint value, σ)` of the parameter moved most in its σ;
-    `s2`: the corners' variance factor the covariance carries.
+    `s2`: the corners' variance factor the covariance carries; `table`: every compared
+    parameter's `(label, corners-only value, joint value, σ)`, side by side.
     """
 
     d2: float
@@ -42,6 +43,7 @@ class CameraShift:
     dof: int
     worst: tuple
     s2: float
+    table: tuple = ()
 
     @property
     def moved(self) -> bool:
@@ -70,6 +72,10 @@ class CameraShift:
             "moved": bool(self.moved),
             "worst": {
                 "parameter": label, "corners": float(a), "joint": float(b), "sigma": float(s)
+            },
+            "parameters": {
+                lab: {"corners": float(x), "joint": float(y), "sigma": float(z)}
+                for lab, x, y, z in self.table
             },
         }
 
@@ -129,4 +135,8 @@ def camera_shift(camera_fit, joint_fit, *, tail: float = TAIL) -> CameraShift | 
     k = int(np.argmax(np.abs(z)))
     lab = labels[cam[k]]
     worst = (lab, float(ref[lab]), float(joint[lab]), float(sd[k]))
-    return CameraShift(d2, chi2_quantile(len(cam), tail), len(cam), worst, s2)
+    table = tuple(
+        (labels[i], float(ref[labels[i]]), float(joint[labels[i]]), float(sd[j]))
+        for j, i in enumerate(cam)
+    )
+    return CameraShift(d2, chi2_quantile(len(cam), tail), len(cam), worst, s2, table)

@@ -32,6 +32,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ..core._model import gauge_residuals
 from ..core._solve import linearised
 
 __all__ = [
@@ -87,10 +88,10 @@ def _group_bounds(data, params) -> dict:
         out["stripes"] = [(at + v * K, at + (v + 1) * K) for v in range(V)]
         at += V * K
     gauge = []
-    if params.stage is not None:
-        F, L = data.gauge.shape[:2]
-        gauge.append((at, at + F * L))
-        at += F * L
+    if params.stage is not None:  # F · L points, then the stage's two gauge-fixing rows
+        n = int(np.prod(jax.eval_shape(gauge_residuals, params, data).shape))
+        gauge.append((at, at + n))
+        at += n
     if params.table_pose is not None and data.table is not None:
         t = data.table
         n_c = 2 * int(np.prod(t.corners.shape[:2]))
