@@ -65,9 +65,10 @@ def test_joint_beats_sequential_on_the_laser_plane(traced, joint_cal):
     # the paper's sequence inherits the boards' poorly determined depth into the plane
     assert _distance_error_um(joint_cal, truth) < 0.5 * _distance_error_um(seq, truth)
     assert joint_cal.plane_rms_mm < 0.2 * seq.plane_rms_mm
-    # ... and its stripe points lie far off that plane: the stripe gate says so, while the
-    # joint calibration of the same data passes every gate
-    assert "stripe" in {g.name for g in seq.quality.failures}
+    # ... and its stripe points lie far off that plane: the stripe gate says so (the noise
+    # estimated from them is beyond what a laser line's centres reach), while the joint
+    # calibration of the same data passes every gate
+    assert "stripe noise" in {g.name for g in seq.quality.failures}
     assert joint_cal.quality.passed
 
 

@@ -179,8 +179,7 @@ def calibrate(
     when a quality gate fails (both carry the result); `ValueError` for data that cannot
     determine the laser plane or that leave parameters undetermined.
     """
-    if noise not in NOISE_MODES:
-        raise ValueError(f"noise must be one of {NOISE_MODES}, got {noise!r}")
+    _check_arguments(obs, noise, robust)
     stated = {"corner_px": float(sigma_corner_px), "stripe_px": float(sigma_stripe_px)}
     obs, outside = screen_observations(obs)
     if max_radius_px is not None:
@@ -210,7 +209,7 @@ def calibrate(
     )
     hold = cam_cal.hold
     notes = cam_cal.notes + profile_notes(cam_cal.axis_profile) + _unchecked_motion(obs)
-    notes += board_scale_note(obs, cam_cal.poses)
+    notes += board_scale_note(obs, cam_cal.poses) + _duplicate_views_note(obs)
     if camera_only:
         cal = _camera_only(cam_cal, obs, model, distortion, sigma_corner_px, robust, noise)
         rejected = {"threshold_sigma": reject}
@@ -374,6 +373,49 @@ def calibrate(
         record["solves"] = int(solves)  # the re-solves the estimate took
     return _gated(
         cal, {**outside, **outliers}, plane_fit.conditioning, throw, notes, hints, record
+    )
+
+
+def _check_arguments(obs, noise: str, robust) -> None:
+    """One-line refusals of arguments that cannot be calibrated from, naming them."""
+    if not isinstance(obs, Observations):
+        raise TypeError(
+            f"obs must be Observations (read_observations(path)), got {type(obs).__name__}"
+        )
+    if noise not in NOISE_MODES:
+        raise ValueError(f"noise must be one of {NOISE_MODES}, got {noise!r}")
+    if robust is not None and not (isinstance(robust, (int, float)) and 0 < robust < math.inf):
+        raise ValueError(f"robust must be a Huber threshold > 0 (σ) or None (off), got {robust!r}")
+    for name, scan in (("stage", obs.stage), ("stage_target", obs.stage_target)):
+        step = None if scan is None else float(scan.delta_omega_deg)
+        if step is not None and not (math.isfinite(step) and step != 0.0):
+            raise ValueError(
+                f"obs.{name}.delta_omega_deg is {step:g}: the table must turn between "
+                "frames (give the table step in degrees)"
+            )
+    views = [np.asarray(v.corners_px, dtype=np.float64) for v in obs.views]
+    if len(views) >= 3 and all(np.array_equal(v, views[0], equal_nan=True) for v in views):
+        raise ValueError(
+            f"the {len(views)} views hold identical corners: one pose imaged "
+            f"{len(views)} times; a calibration needs the board in different poses"
+        )
+
+
+def _duplicate_views_note(obs) -> tuple[str, ...]:
+    """A warning naming views whose corners repeat an earlier view's exactly (the same
+    image given twice weighs its pose double)."""
+    seen, dup = {}, []
+    for i, v in enumerate(obs.views):
+        key = np.asarray(v.corners_px, dtype=np.float64).tobytes()
+        if key in seen:
+            dup.append(f"{i} (= {seen[key]})")
+        else:
+            seen[key] = i
+    if not dup:
+        return ()
+    return (
+        f"view(s) {', '.join(dup[:8])}{' ...' if len(dup) > 8 else ''} repeat an earlier "
+        "view's corners exactly: the same image given twice counts its pose double",
     )
 
 
