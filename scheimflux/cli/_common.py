@@ -30,6 +30,80 @@ def refuse_to_clobber(*paths: str, overwrite: bool) -> None:
             raise CLIError(f"{path} exists; pass --overwrite to replace it")
 
 
+def _path_words(value):
+    """The strings in an argparse value (a string, or a list/tuple of them)."""
+    if isinstance(value, (str, os.PathLike)):
+        yield os.fspath(value)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            yield from _path_words(v)
+
+
+def _same_file(a: str, b: str) -> bool:
+    """`a` and `b` name the same file: equal after resolving symlinks, or one file
+    under two names (a hard link, a bind mount)."""
+    try:
+        if os.path.realpath(a) == os.path.realpath(b):
+            return True
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def _inside_input_folder(out: str, folder: str) -> bool:
+    """`out` is an existing image file of the input folder `folder` (a frame the command
+    reads), by name, through a symlink or as a hard link."""
+    from .._image import IMAGE_SUFFIXES
+
+    if not (os.path.isdir(folder) and os.path.isfile(out)):
+        return False
+    try:
+        st = os.stat(out)
+        with os.scandir(folder) as entries:
+            return any(
+                e.name.lower().endswith(IMAGE_SUFFIXES)
+                and os.path.samestat(e.stat(), st)
+                for e in entries
+            )
+    except OSError:
+        return False
+
+
+def refuse_output_over_input(args, outputs: dict[str, list[str]]) -> None:
+    """Raise `CLIError` if an output path resolves (after symlinks, or as a hard link) to
+    one of the command's inputs — with or without `--overwrite`.
+
+    **Arguments:**
+    - `args`: the parsed command line; every string value of a destination not in
+      `outputs` that names an existing file or folder counts as an input.
+    - `outputs`: option (argparse destination) → the output files it names.
+
+    Called once by `_main.main` for every command, before the command runs, so nothing
+    is read, computed or written when an output would replace an input (a tab-completion
+    slip in `calibrate OBS.json --out OBS.json --overwrite`).
+    """
+    skip = set(outputs) | {"command", "func"}
+    inputs = [
+        (dest, word)
+        for dest, value in vars(args).items()
+        if dest not in skip
+        for word in _path_words(value)
+        if word and os.path.exists(word)
+    ]
+    for dest, paths in outputs.items():
+        for out in paths:
+            if not out:
+                continue
+            for name, word in inputs:
+                if _same_file(out, word) or _inside_input_folder(out, word):
+                    flag = "--" + dest.replace("_", "-")
+                    what = f" ({name.replace('_', ' ')})"
+                    raise CLIError(
+                        f"{flag} {out} would replace the input {word}{what}; "
+                        "choose another output name (nothing written)"
+                    )
+
+
 def check_output(path: str, *, overwrite: bool) -> str:
     """Check, before any long computation, that the output file `path` can be written:
     it does not exist (unless `overwrite`), it is not a folder, and its folder exists and

@@ -102,6 +102,17 @@ def _command(argv: list[str]) -> str | None:
     return None
 
 
+def _outputs(args) -> dict[str, list[str]]:
+    """Option → the output files the command named in `args` writes: the module's
+    `output_paths(args)` where it has one, else `--out`."""
+    module = sys.modules.get(f"scheimflux.cli.{_SUBCOMMANDS[args.command][0]}")
+    paths = getattr(module, "output_paths", None)
+    if paths is not None:
+        return paths(args)
+    out = getattr(args, "out", None)
+    return {} if out is None else {"out": [out]}
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = _command(argv)
@@ -113,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     enable_compilation_cache()  # already on from `import scheimflux`; idempotent
-    from ._common import CLIError  # NumPy: imported once a subcommand runs
+    from ._common import CLIError, refuse_output_over_input
+
     try:
+        refuse_output_over_input(args, _outputs(args))  # every command, before it runs
         return int(args.func(args) or 0)
     except (
         CLIError,

@@ -331,6 +331,12 @@ def _swap_in(staging: str, out: str, names: list[str]) -> None:
         shutil.rmtree(aside, ignore_errors=True)
 
 
+def output_paths(args) -> dict[str, list[str]]:
+    """The files this command writes into the --out folder (checked against its inputs,
+    e.g. a --lens prescription file, by `_main`)."""
+    return {"out": [os.path.join(os.fspath(args.out), name) for name in _FILES]}
+
+
 def run(args) -> int:
     _check(args)
     import shutil
