@@ -4,6 +4,10 @@ after those of tests/test_bad_input.py, in the same order."""
 
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -91,3 +95,70 @@ def test_distinct_output_beside_inputs_is_not_refused(tmp_path, capsys, monkeypa
     monkeypatch.chdir(tmp_path)
     code, _, err = _run(capsys, "export", "cal.json", "--opencv", "cam.yml")
     assert "would replace the input" not in err
+
+
+# ----------------------------------------------------------------------------- 2. Ctrl-C
+
+
+@pytest.fixture(scope="module")
+def small_observations(tmp_path_factory):
+    """Observations of 4 board views from `scheimflux simulate` (no stage scan)."""
+    folder = tmp_path_factory.mktemp("sim")
+    subprocess.run(
+        [sys.executable, "-m", "scheimflux", "simulate", "--out", str(folder), "--views", "4",
+         "--frames", "0"],
+        check=True, capture_output=True, timeout=600, env=_cli_env(),
+    )  # fmt: skip
+    return folder / "observations.json"
+
+
+def _cli_env() -> dict:
+    """The environment for a CLI subprocess that runs this checkout's `scheimflux` (the
+    one these tests import), whatever the working folder."""
+    import scheimflux
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(scheimflux.__file__)))
+    path = os.environ.get("PYTHONPATH")
+    return dict(os.environ, PYTHONPATH=root if not path else root + os.pathsep + path)
+
+
+def _interrupt_calibrate(obs, tmp_path, after_s: float):
+    """`scheimflux calibrate OBS --out CAL --overwrite` with an old CAL, SIGINT after
+    `after_s` seconds: the exit code, stderr and whether CAL is still the old file."""
+    cal = tmp_path / "cal.json"
+    old = b'{"old": "calibration"}\n'
+    cal.write_bytes(old)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "scheimflux", "calibrate", str(obs), "--out", str(cal),
+         "--overwrite"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path, env=_cli_env(),
+    )  # fmt: skip
+    time.sleep(after_s)
+    proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=600)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    left = [n for n in os.listdir(tmp_path) if n.startswith(".tmp-")]
+    return proc.returncode, err.decode(), cal.read_bytes() == old, left
+
+
+def _check_interrupted(result) -> None:
+    code, err, kept, left = result
+    assert code == 130, err[-2000:]
+    assert kept, "the old calibration file was replaced"
+    assert left == []
+    assert "Exception ignored" not in err and "Traceback" not in err, err[-2000:]
+
+
+def test_ctrl_c_during_jax_start_is_honoured(small_observations, tmp_path):
+    """A SIGINT 1 s in (JAX importing and compiling, when its garbage-collection callback
+    runs often) used to be swallowed; the run then replaced the old file and exited 0."""
+    _check_interrupted(_interrupt_calibrate(small_observations, tmp_path, 1.0))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after_s", [0.3, 2.0, 4.0])
+def test_ctrl_c_at_any_instant_is_honoured(small_observations, tmp_path, after_s):
+    _check_interrupted(_interrupt_calibrate(small_observations, tmp_path, after_s))
