@@ -43,3 +43,81 @@ def batched(fn, x, core: int):
     flat = x.reshape((-1,) + x.shape[x.ndim - core :])
     out = jax.vmap(fn)(flat)
     return jax.tree.map(lambda o: o.reshape(batch + o.shape[1:]), out)
+
+
+# ----------------------------------------------------------------------------- physics
+#
+# Bounds of physically possible values, checked where a camera, plane or stage is built
+# from concrete numbers (constructors, the calibration-file reader); skipped for JAX
+# tracers, so nothing changes under jit, vmap or grad.
+
+MAX_TILT_DEG = 45.0
+"""The largest sensor tilt (|phi|, |theta|, OpenCV's |tau_x|, |tau_y|) accepted. Scheimpflug
+adapters and tilt-shift mounts tilt by at most about ±10–20° (tilt-shift lenses ±8–12°,
+machine-vision Scheimpflug adapters up to about ±20°), and a sensor tilted beyond 45°
+receives the light at grazing angles its micro-lenses reject: 45° is more than twice
+any adapter's range, yet far below the 90° at which the model degenerates."""
+
+MAX_LENGTH_MM = 1e6
+"""The largest length (mm) accepted for a translation, a principal-plane distance or a
+sensor distance: 1 km, beyond any laboratory or industrial triangulation rig by three
+orders of magnitude (a `t_m_c` of 1e300 mm gives points at 1e300 mm)."""
+
+
+def concrete(x):
+    """`x` as a NumPy array, or None when it is (or holds) a JAX tracer: inside `jit`,
+    `vmap` or `grad` a value has no number to check."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(x, dtype=float)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+    except (TypeError, ValueError):
+        return None
+
+
+def check_physical(
+    owner: str,
+    name: str,
+    value,
+    *,
+    positive: bool = False,
+    nonzero: bool = False,
+    max_abs: float | None = None,
+    unit: str = "",
+    why: str = "",
+) -> None:
+    """Raise `ValueError` naming `owner.name` when the concrete `value` is not finite,
+    zero (with `nonzero`), not > 0 (with `positive`), or beyond `max_abs` in magnitude;
+    a tracer is skipped."""
+    arr = concrete(value)
+    if arr is None:
+        return
+    shown = arr.tolist()
+    suffix = f" {unit}" if unit else ""
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}.{name} must be finite, got {shown}{suffix}")
+    if nonzero and not np.all(arr != 0):
+        raise ValueError(f"{owner}.{name} must not be zero{why}")
+    if positive and not np.all(arr > 0):
+        raise ValueError(f"{owner}.{name} must be positive, got {shown}{suffix}{why}")
+    if max_abs is not None and not np.all(np.abs(arr) <= max_abs):
+        raise ValueError(
+            f"{owner}.{name} = {shown}{suffix} is beyond any real rig "
+            f"(|{name}| <= {max_abs:g}{suffix}){why}"
+        )
+
+
+def check_tilt(owner: str, name: str, value) -> None:
+    """A sensor tilt in radians within ±`MAX_TILT_DEG` (see there); tracers skipped."""
+    arr = concrete(value)
+    if arr is None:
+        return
+    check_physical(owner, name, arr, unit="rad")
+    if not np.all(np.abs(arr) <= np.radians(MAX_TILT_DEG)):
+        deg = np.degrees(arr).tolist()
+        raise ValueError(
+            f"{owner}.{name} = {deg}° is beyond what a Scheimpflug "
+            f"adapter allows (|tilt| <= {MAX_TILT_DEG:g}°)"
+        )

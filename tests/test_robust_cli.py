@@ -3,7 +3,9 @@
 after those of tests/test_bad_input.py, in the same order."""
 
 import json
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -162,3 +164,159 @@ def test_ctrl_c_during_jax_start_is_honoured(small_observations, tmp_path):
 @pytest.mark.parametrize("after_s", [0.3, 2.0, 4.0])
 def test_ctrl_c_at_any_instant_is_honoured(small_observations, tmp_path, after_s):
     _check_interrupted(_interrupt_calibrate(small_observations, tmp_path, after_s))
+
+
+# ----------------------------------------------------------------------------- 3. physics
+
+
+def _paper_values():
+    import scheimflux as sf
+
+    cam = sf.paper_thick_lens("scheimpflug-1.5")
+    names = ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy")
+    return cam, {n: float(getattr(cam, n)) for n in names}
+
+
+@pytest.mark.parametrize(
+    "cls, change, message",
+    [
+        ("thick", {"dx": -0.0044}, "ThickLensScheimpflug.dx must be positive"),
+        ("thick", {"f": 0.0}, "ThickLensScheimpflug.f must be positive"),
+        ("thick", {"f": math.nan}, "ThickLensScheimpflug.f must be finite"),
+        ("thick", {"phi": math.radians(89.0)}, "beyond what a Scheimpflug adapter allows"),
+        ("thick", {"z0": 1e300}, "ThickLensScheimpflug.z0 = 1e+300 mm is beyond any real rig"),
+        ("noncentral", {"dy": 0.0}, "ThickLensNonCentral.dy must be positive"),
+        ("pinhole", {"alpha": 0.0}, "Pinhole.alpha must not be zero"),
+        ("pinhole", {"x0": math.inf}, "Pinhole.x0 must be finite"),
+        ("opencv", {"fx": 0.0}, "OpenCVCamera.fx must not be zero"),
+        ("opencv", {"tau_y": math.radians(60.0)}, "OpenCVCamera.tau_y"),
+    ],
+)
+def test_camera_constructors_refuse_impossible_values(cls, change, message):
+    from scheimflux.camera import (
+        OpenCVCamera,
+        Pinhole,
+        ThickLensNonCentral,
+        ThickLensScheimpflug as Thick,
+    )
+
+    _, values = _paper_values()
+    build = {
+        "thick": lambda **kw: Thick(**{**values, **kw}),
+        "noncentral": lambda **kw: ThickLensNonCentral(**{**values, **kw}),
+        "pinhole": lambda **kw: Pinhole(**{"alpha": 3e4, "beta": 3e4, "gamma": 0.0,
+                                           "x0": 800.0, "y0": 600.0, **kw}),
+        "opencv": lambda **kw: OpenCVCamera(**{"fx": 3e4, "fy": 3e4, "cx": 800.0,
+                                               "cy": 600.0, **kw}),
+    }[cls]  # fmt: skip
+    build()  # the valid camera is accepted
+    with pytest.raises(ValueError, match=re.escape(message)):
+        build(**change)
+
+
+def test_camera_checks_never_break_tracing():
+    """Under jit, vmap and grad the values are tracers: nothing is checked there (the
+    reconstruction's status says what is wrong instead)."""
+    import jax
+    import jax.numpy as jnp
+
+    from scheimflux.camera import ThickLensScheimpflug as Thick
+
+    _, v = _paper_values()
+
+    def k00(f):
+        return Thick(f, v["e"], v["z0"], v["phi"], v["theta"], v["x0"], v["y0"], v["dx"],
+                     v["dy"]).K_f[0, 0]  # fmt: skip
+
+    assert float(jax.jit(k00)(0.0)) == 0.0  # f = 0 is built under jit
+    assert jax.vmap(k00)(jnp.array([-1.0, 97.0])).shape == (2,)
+    assert math.isfinite(float(jax.grad(k00)(97.0)))
+
+
+def test_invalid_camera_status_says_so():
+    """f = 0 and f = NaN used to give 'behind the camera' and 'invalid pixel'."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import scheimflux as sf
+    from scheimflux.reconstruct import Status
+    from scheimflux.reconstruct._reconstruct import reference_stripe_to_camera
+
+    cam, _ = _paper_values()
+    plane = sf.paper_laser_plane()
+    uv = jnp.array([[800.0, 600.0], [700.0, 500.0]])
+    assert (sf.stripe_to_camera(cam, plane, uv).status == Status.OK).all()
+    for field, value in (("f", 0.0), ("f", math.nan), ("dx", -0.0044)):
+        bad = eqx.tree_at(lambda c, field=field: getattr(c, field), cam, jnp.asarray(value))
+        for rec in (sf.stripe_to_camera(bad, plane, uv),
+                    reference_stripe_to_camera(bad, plane, uv)):  # fmt: skip
+            assert (rec.status == Status.INVALID_CAMERA).all(), (field, value, rec.status)
+            assert jnp.isnan(rec.points).all()
+
+
+def _cal_doc():
+    import scheimflux as sf
+    from scheimflux.io._calibration import FORMAT, camera_to_dict, plane_to_dict, stage_to_dict
+
+    cam, _ = _paper_values()
+    return {
+        "format": FORMAT,
+        "model": "thick-lens",
+        "camera": camera_to_dict(cam),
+        "laser_plane": plane_to_dict(sf.paper_laser_plane()),
+        "stage": stage_to_dict(sf.paper_stage(10.0), [0.0, 0.0]),
+        "diagnostics": {
+            "frozen": ["camera.dx", "camera.dy", "camera.f", "camera.phi", "camera.theta"],
+            "uncertainty": {"std": {"camera.e": 1.0, "camera.z0": 1.4}},
+        },
+    }
+
+
+def _edit_phi(d):
+    d["camera"]["phi"]["value"] = 89.0
+
+
+def _edit_t(d):
+    d["stage"]["t_m_c_mm"] = [1e300, 0.0, 0.0]
+
+
+def _edit_frozen_sigma(d):
+    d["diagnostics"]["uncertainty"]["std"]["camera.phi"] = 0.01
+
+
+def _edit_plane_far(d):
+    d["laser_plane"]["n_per_mm"] = [0.0, 0.0, 1e-9]
+    d["laser_plane"].pop("unit_normal", None)
+    d["laser_plane"].pop("distance_mm", None)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (_edit_phi, "camera.phi.value = 89.0° is beyond what a Scheimpflug adapter allows"),
+        (_edit_t, "stage.t_m_c_mm = [1e+300, 0.0, 0.0] mm is beyond any real rig"),
+        (_edit_frozen_sigma, "contradicts its own diagnostics: camera.phi is listed in "
+                             "diagnostics.frozen"),
+        (_edit_plane_far, "beyond any real rig"),
+    ],
+)  # fmt: skip
+def test_calibration_file_checked_against_physics_and_its_diagnostics(
+    tmp_path, capsys, edit, message
+):
+    import numpy as np
+
+    from scheimflux.io._stripes import write_stripes
+
+    doc = _cal_doc()
+    (tmp_path / "ok.json").write_text(json.dumps(doc))
+    edit(doc)
+    (tmp_path / "cal.json").write_text(json.dumps(doc))
+    write_stripes(tmp_path / "s.json", [np.array([[700.0, 500.0], [900.0, 650.0]])])
+    code, _, err = _run(capsys, "reconstruct", tmp_path / "ok.json", tmp_path / "s.json",
+                        "--out", tmp_path / "ok.npy")  # fmt: skip
+    assert code == 0, err
+    code, _, err = _run(capsys, "reconstruct", tmp_path / "cal.json", tmp_path / "s.json",
+                        "--out", tmp_path / "p.npy")  # fmt: skip
+    line = _one_line(err)
+    assert code == 1 and message in line, line
+    assert not (tmp_path / "p.npy").exists()

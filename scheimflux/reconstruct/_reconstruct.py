@@ -35,6 +35,7 @@ class Status(enum.IntEnum):
     BEHIND_CAMERA = 3  # the intersection lies behind the ray's origin
     DEGENERATE_PLANE = 4  # the laser plane is not finite or passes through the camera centre
     OUTSIDE_SENSOR = 5  # the pixel lies outside the sensor given as `sensor_size`
+    INVALID_CAMERA = 6  # the camera's parameters describe no camera (f <= 0 or NaN, ...)
 
 
 class Reconstruction(eqx.Module):
@@ -132,7 +133,8 @@ def _pixel_to_camera(camera: AbstractCamera, plane: LaserPlane, uv, sensor):
             jnp.int8(Status.OUTSIDE_SENSOR),
             status,
         )
-        X = jnp.where(status == Status.OK, X, jnp.nan)
+    status = jnp.where(camera.parameters_ok(), status, jnp.int8(Status.INVALID_CAMERA))
+    X = jnp.where(status == Status.OK, X, jnp.nan)
     return X, status
 
 
@@ -201,7 +203,8 @@ def stripe_to_camera(
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
-    intersection behind the camera, degenerate plane, outside the sensor).
+    intersection behind the camera, degenerate plane, outside the sensor, invalid
+    camera).
     """
     _check_plane(plane)
     uv = as_points(uv, 2, "uv")
