@@ -12,13 +12,15 @@ def as_points(x, last: int, name: str):
 
     Raises `ValueError` naming the argument when the shape is wrong, before any tracing.
     Integer input is promoted to the default float type; float32 and float64 are kept;
-    float16 and bfloat16 are refused.
+    float16, bfloat16 and booleans are refused.
     """
     arr = x if hasattr(x, "dtype") and hasattr(x, "shape") else np.asarray(x)
     if arr.ndim == 0 or arr.shape[-1] != last:
         raise ValueError(f"{name} must have shape (..., {last}), got shape {tuple(arr.shape)}")
+    if arr.dtype == bool:  # True/False are not coordinates (a mask passed by mistake?)
+        raise ValueError(f"{name} must be numbers, got a boolean array (a mask?)")
     if not jnp.issubdtype(arr.dtype, jnp.floating):
-        if not (jnp.issubdtype(arr.dtype, jnp.integer) or arr.dtype == bool):
+        if not jnp.issubdtype(arr.dtype, jnp.integer):
             raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
         arr = jnp.asarray(arr, dtype=float)
     elif jnp.dtype(arr.dtype).itemsize < 4:

@@ -2,6 +2,7 @@
 (issue 49): one test per defect group. The table in docs/bad-input.md lists these cases
 after those of tests/test_bad_input.py, in the same order."""
 
+import inspect
 import json
 import math
 import os
@@ -320,3 +321,117 @@ def test_calibration_file_checked_against_physics_and_its_diagnostics(
     line = _one_line(err)
     assert code == 1 and message in line, line
     assert not (tmp_path / "p.npy").exists()
+
+
+# ----------------------------------------------------------------------------- 4. OS errors
+
+
+def _scan(tmp_path):
+    """A hand-written calibration (no solve) and a one-frame stripes file."""
+    import numpy as np
+
+    from scheimflux.io._stripes import write_stripes
+
+    (tmp_path / "cal.json").write_text(json.dumps(_cal_doc()))
+    write_stripes(tmp_path / "s.json", [np.array([[700.0, 500.0], [900.0, 650.0]])])
+    return tmp_path / "cal.json", tmp_path / "s.json"
+
+
+def _tmp_files(folder):
+    return sorted(n for n in os.listdir(folder) if n.startswith(".tmp-"))
+
+
+@pytest.mark.parametrize("code_name", ["ENOSPC", "EROFS", "EACCES", "EDQUOT", "EIO"])
+def test_every_os_error_is_one_line(tmp_path, capsys, monkeypatch, code_name):
+    """Disk full used to end in `OSError: [Errno 28] No space left on device` and a
+    traceback; every OS error is now one line naming the output, the old file kept."""
+    import errno
+
+    import scheimflux.io._files as files
+
+    cal, stripes = _scan(tmp_path)
+    out = tmp_path / "p.npy"
+    out.write_bytes(b"old points")
+    number = getattr(errno, code_name)
+
+    def failing_commit(tmp, path, overwrite):
+        raise OSError(number, os.strerror(number))
+
+    monkeypatch.setattr(files, "_commit", failing_commit)
+    code, _, err = _run(capsys, "reconstruct", cal, stripes, "--out", out, "--overwrite")
+    line = _one_line(err)
+    assert code == 1
+    assert f"{out}: {os.strerror(number)}" in line, line
+    assert out.read_bytes() == b"old points"
+    assert _tmp_files(tmp_path) == []
+
+
+def test_a_name_too_long_is_found_before_the_work(tmp_path, capsys):
+    cal, stripes = _scan(tmp_path)
+    out = tmp_path / ("p" * 250 + ".npy")  # fits the file system, not with .tmp-…-XXXXXXXX
+    code, stdout, err = _run(capsys, "reconstruct", cal, stripes, "--out", out)
+    line = _one_line(err)
+    assert code == 1 and "file name too long" in line, line
+    assert "reconstructing" not in stdout.lower() and _tmp_files(tmp_path) == []
+
+
+def test_json_nested_beyond_recursion_is_one_line(tmp_path, capsys):
+    cal, stripes = _scan(tmp_path)
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000)
+    deep_frames = tmp_path / "deep_frames.json"  # read as a stream, frame by frame
+    deep_frames.write_text('{"frames": ' + "[" * 100_000)
+    for argv in (("reconstruct", deep, stripes, "--out", tmp_path / "p.npy"),
+                 ("calibrate", deep, "--out", tmp_path / "c.json"),
+                 ("measure", deep, "--plane"),
+                 ("reconstruct", cal, deep_frames, "--out", tmp_path / "p.npy")):  # fmt: skip
+        code, _, err = _run(capsys, *argv)
+        line = _one_line(err)
+        assert code == 1 and "nested too deeply" in line, line
+        assert str(argv[1]) in line or str(deep_frames) in line, line
+
+
+def test_api_misuse_names_the_argument():
+    import jax.numpy as jnp
+    import numpy as np
+
+    import scheimflux as sf
+
+    cam, _ = _paper_values()
+    plane, stage = sf.paper_laser_plane(), sf.paper_stage(10.0)
+    uv = jnp.array([[800.0, 600.0]])
+    # The test run type-checks annotated arguments (jaxtyping's import hook); a user's
+    # run does not, and gets the library's own message: both name the argument.
+    to_m, to_c = inspect.unwrap(sf.stripe_to_measurement), inspect.unwrap(sf.stripe_to_camera)
+    with pytest.raises(TypeError, match="stage"):
+        sf.stripe_to_measurement(cam, plane, None, uv, 0)
+    with pytest.raises(TypeError, match="stage must be a RotaryStage, got NoneType"):
+        to_m(cam, plane, None, uv, 0)
+    with pytest.raises(TypeError, match="camera"):
+        sf.stripe_to_camera(None, plane, uv)
+    with pytest.raises(TypeError, match="camera must be a camera model .* got NoneType"):
+        to_c(None, plane, uv)
+    with pytest.raises(ValueError, match="uv must be numbers, got a boolean array"):
+        sf.stripe_to_camera(cam, plane, np.ones((3, 2), bool))
+    with pytest.raises(ValueError, match="frame_index must be finite"):
+        sf.stripe_to_measurement(cam, plane, stage, uv, math.nan)
+    assert bool(sf.stripe_to_measurement(cam, plane, stage, uv, 3).valid.all())
+
+
+def test_stale_temporaries_of_killed_runs_are_cleaned_or_named(tmp_path, capsys):
+    """A SIGKILLed write leaves `.tmp-<name>-XXXXXXXX` (MBs); later runs removed nothing."""
+    cal, stripes = _scan(tmp_path)
+    old = tmp_path / ".tmp-p.npy-abcd1234"
+    old.write_bytes(b"x" * 2000)
+    hours_ago = time.time() - 2 * 3600
+    os.utime(old, (hours_ago, hours_ago))
+    fresh = tmp_path / ".tmp-p.npy-efgh5678"
+    fresh.write_bytes(b"y")
+    other = tmp_path / ".tmp-other.npy-ijkl9012"  # another output's: not ours to touch
+    other.write_bytes(b"z")
+    os.utime(other, (hours_ago, hours_ago))
+    code, _, err = _run(capsys, "reconstruct", cal, stripes, "--out", tmp_path / "p.npy")
+    assert code == 0, err
+    assert not old.exists() and f"removed {old}" in err
+    assert fresh.exists() and f"note: {fresh}" in err
+    assert other.exists()

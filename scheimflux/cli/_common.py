@@ -104,6 +104,53 @@ def refuse_output_over_input(args, outputs: dict[str, list[str]]) -> None:
                     )
 
 
+# What an OS error means for the user, by errno.
+_OS_HINTS = {
+    "ENOSPC": "the disk is full: free some space and run again",
+    "EDQUOT": "the disk quota is exceeded: free some space and run again",
+    "EROFS": "the file system is read-only: write the output elsewhere",
+    "EACCES": "no permission: choose a folder you may write to",
+    "EPERM": "operation not permitted: choose a folder you may write to",
+    "ENAMETOOLONG": "shorten the file name",
+}
+
+
+def os_error_message(err: OSError) -> str:
+    """One line for an `OSError`: `PATH: what happened; what to do`, and that nothing
+    partial was written (every output goes through `io._files.atomic_output`, which
+    removes its temporary file and never replaces the old output on failure)."""
+    import errno as _errno
+
+    if err.errno is None or not err.strerror:
+        return str(err)  # raised with a message of ours
+    where = f"{err.filename}: " if err.filename else ""
+    hint = _OS_HINTS.get(_errno.errorcode.get(err.errno, ""), "")
+    text = f"{where}{err.strerror}" + (f" ({hint})" if hint else "")
+    return text + "; nothing partial was written and existing outputs are unchanged"
+
+
+def report_stale(command: str, outputs: dict[str, list[str]], *, age_s: float = 3600.0) -> None:
+    """Deal with the hidden `.tmp-<name>-*` files that a killed earlier run (SIGKILL,
+    power cut) left beside an output: remove those older than `age_s` seconds, name the
+    younger ones (a run still writing the same output owns them)."""
+    from ..io._files import stale_temporaries
+
+    for paths in outputs.values():
+        for path in paths:
+            for tmp, age, size in stale_temporaries(path):
+                if age > age_s:
+                    try:
+                        os.unlink(tmp)
+                    except OSError:
+                        continue
+                    warn(command, f"removed {tmp} ({size / 1e6:.1f} MB), left by an "
+                                  f"interrupted earlier write {age / 3600:.1f} h ago")  # fmt: skip
+                else:
+                    warn(command, f"note: {tmp} ({size / 1e6:.1f} MB) is a temporary file "
+                                  "of another write of this output, running or killed; "
+                                  "remove it if no other run is writing it")  # fmt: skip
+
+
 def check_output(path: str, *, overwrite: bool) -> str:
     """Check, before any long computation, that the output file `path` can be written:
     it does not exist (unless `overwrite`), it is not a folder, and its folder exists and
@@ -115,7 +162,7 @@ def check_output(path: str, *, overwrite: bool) -> str:
     except FileExistsError:
         raise  # "PATH exists; pass overwrite=True (--overwrite) to replace it"
     except OSError as err:
-        raise CLIError(str(err)) from None
+        raise CLIError(os_error_message(err)) from None
 
 
 def check_output_folder(folder: str) -> str:

@@ -253,20 +253,25 @@ def _main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     enable_compilation_cache()  # already on from `import scheimflux`; idempotent
-    from ._common import CLIError, refuse_output_over_input
+    from ._common import CLIError, os_error_message, refuse_output_over_input, report_stale
 
     try:
-        refuse_output_over_input(args, _outputs(args))  # every command, before it runs
+        outputs = _outputs(args)
+        refuse_output_over_input(args, outputs)  # every command, before it runs
+        report_stale(args.command, outputs)
         return int(args.func(args) or 0)
-    except (
-        CLIError,
-        ValueError,
-        FileNotFoundError,
-        FileExistsError,
-        IsADirectoryError,
-        PermissionError,
-    ) as err:
+    except (CLIError, ValueError) as err:
         print(f"scheimflux {args.command}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # disk full, name too long, permission, read-only, ...
+        print(f"scheimflux {args.command}: error: {os_error_message(err)}", file=sys.stderr)
+        return 1
+    except RecursionError:
+        print(
+            f"scheimflux {args.command}: error: an input is nested too deeply to read "
+            "(not a file this command reads)",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -40,6 +40,10 @@ def read_points(path: str | os.PathLike) -> tuple[np.ndarray, str | None]:
                 doc = json.load(fh)
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
             raise ValueError(f"{path}: not a readable JSON points file ({err})") from None
+        except RecursionError:
+            raise ValueError(
+                f"{path}: not a points file (JSON nested too deeply to read)"
+            ) from None
         if not isinstance(doc, dict) or doc.get("format") != POINTS_FORMAT:
             raise ValueError(f"{path}: not a {POINTS_FORMAT} file")
         frame = doc.get("frame")
@@ -78,6 +82,8 @@ def _read_labels(path: str, n: int) -> np.ndarray:
         raise FileNotFoundError(f"{path}: no such labels file") from None
     except (OSError, ValueError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a readable labels file ({err})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a labels file (JSON nested too deeply to read)") from None
     lab = np.ravel(lab)
     if lab.shape != (n,) or not np.issubdtype(lab.dtype, np.integer):
         raise ValueError(f"{path}: expected {n} integer labels (one per valid point)")

@@ -149,9 +149,27 @@ def reference_stripe_to_camera(camera, plane, uv, sensor=None):
     return Reconstruction(X.reshape(uv.shape[:-1] + (3,)), status.reshape(uv.shape[:-1]))
 
 
-def _check_plane(plane: LaserPlane) -> None:
+def _check_plane(plane, camera) -> None:  # unannotated: checked here, by hand
+    if not isinstance(camera, AbstractCamera):
+        raise TypeError(
+            f"camera must be a camera model (an AbstractCamera), got {type(camera).__name__}"
+        )
     if not isinstance(plane, LaserPlane):
         raise TypeError(f"plane must be a LaserPlane, got {type(plane).__name__}")
+
+
+def _check_stage(stage) -> None:
+    if not isinstance(stage, RotaryStage):
+        raise TypeError(f"stage must be a RotaryStage, got {type(stage).__name__}")
+
+
+def _check_frame_index(fi) -> None:
+    """A concrete `frame_index` must hold finite numbers (NaN turns every point by NaN:
+    NaN points that the status would call valid)."""
+    if isinstance(fi, jax.core.Tracer):
+        return
+    if jnp.issubdtype(fi.dtype, jnp.floating) and not bool(np.all(np.isfinite(np.asarray(fi)))):
+        raise ValueError("frame_index must be finite frame numbers, got NaN or infinity")
 
 
 def _sensor(sensor_size, dtype):
@@ -206,7 +224,7 @@ def stripe_to_camera(
     intersection behind the camera, degenerate plane, outside the sensor, invalid
     camera).
     """
-    _check_plane(plane)
+    _check_plane(plane, camera)
     uv = as_points(uv, 2, "uv")
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
@@ -284,12 +302,14 @@ def stripe_to_measurement(
 
     **Returns:** a `Reconstruction` in the measurement frame.
     """
-    _check_plane(plane)
+    _check_plane(plane, camera)
+    _check_stage(stage)
     uv = as_points(uv, 2, "uv")
     batch = uv.shape[:-1]
     fi = frame_index if isinstance(frame_index, jax.Array) else np.asarray(frame_index)
     if not (jnp.issubdtype(fi.dtype, jnp.integer) or jnp.issubdtype(fi.dtype, jnp.floating)):
         raise ValueError(f"frame_index must be numbers, got dtype {fi.dtype}")
+    _check_frame_index(fi)
     ok = fi.ndim == 0 or (
         fi.ndim == len(batch) and all(a in (1, b) for a, b in zip(fi.shape, batch))
     )
