@@ -435,3 +435,63 @@ def test_stale_temporaries_of_killed_runs_are_cleaned_or_named(tmp_path, capsys)
     assert not old.exists() and f"removed {old}" in err
     assert fresh.exists() and f"note: {fresh}" in err
     assert other.exists()
+
+
+# ----------------------------------------------------------------------------- 5. messages
+
+
+def _line_frames(tmp_path, n=2):
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(n):
+        img = np.zeros((60, 80), np.uint8)
+        img[:, 30 + i : 33 + i] = 200  # a vertical laser line, 3 px wide
+        cv2.imwrite(str(folder / f"f{i}.png"), img)
+    return folder
+
+
+def test_width_px_zero_is_refused_up_front(tmp_path, capsys):
+    """`--width-px 0` gave one error per frame, then 'none of the images could be read'."""
+    folder = _line_frames(tmp_path)
+    for argv in (("extract", folder, "--out", tmp_path / "s.json", "--width-px", "0"),
+                 ("reconstruct", tmp_path / "cal.json", folder, "--out", tmp_path / "p.npy",
+                  "--width-px", "0")):  # fmt: skip
+        (tmp_path / "cal.json").write_text(json.dumps(_cal_doc()))
+        code, _, err = _run(capsys, *argv)
+        line = _one_line(err)
+        assert code == 1 and "--width-px must be positive, got 0.0" in line, line
+
+
+def test_laser_off_suffix_matching_nothing_is_warned(tmp_path, capsys):
+    folder = _line_frames(tmp_path)
+    code, _, err = _run(capsys, "extract", folder, "--out", tmp_path / "s.json",
+                        "--laser-off", "_dark")  # fmt: skip
+    assert code == 0, err
+    assert "--laser-off '_dark' matches no image" in err
+    code, _, err = _run(capsys, "extract", folder, "--out", tmp_path / "t.json")
+    assert code == 0 and "--laser-off" not in err  # without the option: no warning
+
+
+def test_simulate_table_step_zero_is_refused_at_the_command_line(tmp_path, capsys):
+    """A step of 0 was written, then refused by detect and the calibration reader."""
+    code, _, err = _run(capsys, "simulate", "--out", tmp_path / "sim", "--delta-omega-deg", "0")
+    line = _one_line(err)
+    assert code == 1 and "--delta-omega-deg must be a non-zero table step" in line, line
+    assert not (tmp_path / "sim").exists()
+
+
+def test_measure_refuses_float16_points_like_the_library(tmp_path, capsys):
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-5, 5, (200, 2)), 150 + rng.normal(0, 0.01, 200)]
+    np.save(tmp_path / "p16.npy", pts.astype(np.float16))
+    np.save(tmp_path / "p32.npy", pts.astype(np.float32))
+    code, _, err = _run(capsys, "measure", tmp_path / "p16.npy", "--plane")
+    line = _one_line(err)
+    assert code == 1 and "float16, too coarse for metrology" in line, line
+    code, _, err = _run(capsys, "measure", tmp_path / "p32.npy", "--plane")
+    assert code == 0, err

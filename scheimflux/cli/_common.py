@@ -223,6 +223,18 @@ def progress(items, desc: str, unit: str):
     return tqdm(items, desc=desc, unit=unit, file=sys.stderr, disable=None)
 
 
+def warn_unmatched_laser_off(command: str, folder, suffix, pairs) -> None:
+    """Warn when `--laser-off SUFFIX` paired no frame with a laser-off image (a typo in
+    the suffix used to be ignored silently: every frame then went without its
+    background subtracted)."""
+    if suffix and pairs and all(off is None for _, off in pairs):
+        warn(
+            command,
+            f"--laser-off {suffix!r} matches no image in {folder} (no NAME{suffix}.EXT beside "
+            "a NAME.EXT): every image is taken as a frame, without a laser-off image",
+        )
+
+
 def warn(command: str, message: str) -> None:
     """`scheimflux COMMAND: message` on stderr, without breaking a progress bar."""
     from tqdm import tqdm

@@ -61,6 +61,13 @@ def read_points(path: str | os.PathLike) -> tuple[np.ndarray, str | None]:
             raise ValueError(f"{path}: not a readable .npy file ({err})") from None
         if pts.ndim < 2 or pts.shape[-1] != 3:
             raise ValueError(f"{path}: expected points of shape (..., 3), got {pts.shape}")
+        if np.issubdtype(pts.dtype, np.floating) and pts.dtype.itemsize < 4:
+            # as the library refuses them (`_checks.as_points`): float16 holds 150 mm to
+            # ~0.06 mm, the precision is already lost
+            raise ValueError(
+                f"{path}: points are {pts.dtype.name}, too coarse for metrology; "
+                "write them as float32 or float64"
+            )
         pts = pts.reshape(-1, 3).astype(np.float64)
         pts = pts[~np.isnan(pts).any(axis=1)]
     else:
