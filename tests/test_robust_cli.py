@@ -495,3 +495,21 @@ def test_measure_refuses_float16_points_like_the_library(tmp_path, capsys):
     assert code == 1 and "float16, too coarse for metrology" in line, line
     code, _, err = _run(capsys, "measure", tmp_path / "p32.npy", "--plane")
     assert code == 0, err
+
+
+# ----------------------------------------------------------------------------- the table
+
+
+def test_docs_table_lists_these_tests_in_order():
+    """docs/bad-input.md's issue-49 rows name exactly this file's tests, in its order."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    with open(os.path.join(here, "..", "docs", "bad-input.md"), encoding="utf-8") as fh:
+        doc = fh.read()
+    named = []
+    for cell in re.findall(r"\| C ([^|]*)\|", doc):
+        for name in re.findall(r"`(test_\w+)`", cell):
+            if name not in named:
+                named.append(name)
+    this = "test_docs_table_lists_these_tests_in_order"
+    tests = [n for n in globals() if n.startswith("test_") and n != this]
+    assert named == tests
