@@ -497,6 +497,16 @@ def test_measure_refuses_float16_points_like_the_library(tmp_path, capsys):
     assert code == 0, err
 
 
+def test_calibrate_nominal_tilt_beyond_an_adapter_is_refused(tmp_path, capsys):
+    """A nominal tilt of 60° ran into the solve (and 90° in a file was blamed on 'a
+    degenerate corner layout'); the bound is the cameras' (`_checks.MAX_TILT_DEG`)."""
+    (tmp_path / "obs.json").write_text("{}")
+    code, _, err = _run(capsys, "calibrate", tmp_path / "obs.json", "--out",
+                        tmp_path / "c.json", "--tilt-deg", "60", "0")  # fmt: skip
+    line = _one_line(err)
+    assert code == 1 and "--tilt-deg angles beyond what a Scheimpflug adapter allows" in line
+
+
 # ----------------------------------------------------------------------------- the table
 
 
