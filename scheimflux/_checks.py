@@ -53,12 +53,15 @@ def batched(fn, x, core: int):
 # from concrete numbers (constructors, the calibration-file reader); skipped for JAX
 # tracers, so nothing changes under jit, vmap or grad.
 
-MAX_TILT_DEG = 45.0
-"""The largest sensor tilt (|phi|, |theta|, OpenCV's |tau_x|, |tau_y|) accepted. Scheimpflug
-adapters and tilt-shift mounts tilt by at most about ±10–20° (tilt-shift lenses ±8–12°,
-machine-vision Scheimpflug adapters up to about ±20°), and a sensor tilted beyond 45°
-receives the light at grazing angles its micro-lenses reject: 45° is more than twice
-any adapter's range, yet far below the 90° at which the model degenerates."""
+MAX_TILT_DEG = 80.0
+"""The largest sensor tilt (|phi|, |theta|, OpenCV's |tau_x|, |tau_y|) accepted. Adapters and
+tilt-shift mounts tilt the lens by ±10–15°, but the model's tilt is the sensor's against
+the image-side axis, which the Scheimpflug condition makes larger in tangent by |β|
+(tan θ′ = |β| tan θ): rigs at |β| = 2 with a steep laser plane reach 50–75°, and the
+simulator builds them. Beyond 80° the light meets the sensor within 10° of grazing,
+where the cover glass reflects most of it and a pixel's footprint is foreshortened more
+than sixfold; at 90° the model degenerates (the issue's 89° gave a 17.5 mm gauge at
+17.68 mm with no warning)."""
 
 MAX_LENGTH_MM = 1e6
 """The largest length (mm) accepted for a translation, a principal-plane distance or a
@@ -120,6 +123,6 @@ def check_tilt(owner: str, name: str, value) -> None:
     if not np.all(np.abs(arr) <= np.radians(MAX_TILT_DEG)):
         deg = np.degrees(arr).tolist()
         raise ValueError(
-            f"{owner}.{name} = {deg}° is beyond what a Scheimpflug "
-            f"adapter allows (|tilt| <= {MAX_TILT_DEG:g}°)"
+            f"{owner}.{name} = {deg}° is beyond any Scheimpflug camera's sensor tilt "
+            f"(|tilt| <= {MAX_TILT_DEG:g}°)"
         )

@@ -184,13 +184,13 @@ def _paper_values():
         ("thick", {"dx": -0.0044}, "ThickLensScheimpflug.dx must be positive"),
         ("thick", {"f": 0.0}, "ThickLensScheimpflug.f must be positive"),
         ("thick", {"f": math.nan}, "ThickLensScheimpflug.f must be finite"),
-        ("thick", {"phi": math.radians(89.0)}, "beyond what a Scheimpflug adapter allows"),
+        ("thick", {"phi": math.radians(89.0)}, "beyond any Scheimpflug camera's sensor tilt"),
         ("thick", {"z0": 1e300}, "ThickLensScheimpflug.z0 = 1e+300 mm is beyond any real rig"),
         ("noncentral", {"dy": 0.0}, "ThickLensNonCentral.dy must be positive"),
         ("pinhole", {"alpha": 0.0}, "Pinhole.alpha must not be zero"),
         ("pinhole", {"x0": math.inf}, "Pinhole.x0 must be finite"),
         ("opencv", {"fx": 0.0}, "OpenCVCamera.fx must not be zero"),
-        ("opencv", {"tau_y": math.radians(60.0)}, "OpenCVCamera.tau_y"),
+        ("opencv", {"tau_y": math.radians(85.0)}, "OpenCVCamera.tau_y"),
     ],
 )
 def test_camera_constructors_refuse_impossible_values(cls, change, message):
@@ -294,7 +294,7 @@ def _edit_plane_far(d):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (_edit_phi, "camera.phi.value = 89.0° is beyond what a Scheimpflug adapter allows"),
+        (_edit_phi, "camera.phi.value = 89.0° is beyond any Scheimpflug camera's sensor tilt"),
         (_edit_t, "stage.t_m_c_mm = [1e+300, 0.0, 0.0] mm is beyond any real rig"),
         (_edit_frozen_sigma, "contradicts its own diagnostics: camera.phi is listed in "
                              "diagnostics.frozen"),
@@ -497,14 +497,14 @@ def test_measure_refuses_float16_points_like_the_library(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_calibrate_nominal_tilt_beyond_an_adapter_is_refused(tmp_path, capsys):
-    """A nominal tilt of 60° ran into the solve (and 90° in a file was blamed on 'a
+def test_calibrate_nominal_tilt_beyond_any_rig_is_refused(tmp_path, capsys):
+    """A nominal tilt of 85° ran into the solve (and 90° in a file was blamed on 'a
     degenerate corner layout'); the bound is the cameras' (`_checks.MAX_TILT_DEG`)."""
     (tmp_path / "obs.json").write_text("{}")
     code, _, err = _run(capsys, "calibrate", tmp_path / "obs.json", "--out",
-                        tmp_path / "c.json", "--tilt-deg", "60", "0")  # fmt: skip
+                        tmp_path / "c.json", "--tilt-deg", "85", "0")  # fmt: skip
     line = _one_line(err)
-    assert code == 1 and "--tilt-deg angles beyond what a Scheimpflug adapter allows" in line
+    assert code == 1 and "--tilt-deg angles beyond any Scheimpflug camera's sensor tilt" in line
 
 
 # ----------------------------------------------------------------------------- the table

@@ -18,7 +18,7 @@ _FIXED_POINT_STEPS = 12
 def check_thick_lens_values(owner: str, cam) -> None:
     """Physical bounds of a thick-lens camera built from numbers (tracers skipped): f and
     the pixel pitch finite and positive (a negative pitch mirrors the image, f ≤ 0 has no
-    real image), the tilt within a Scheimpflug adapter's range, lengths and the principal
+    real image), the tilt within a Scheimpflug rig's range, lengths and the principal
     pixel finite and within `MAX_LENGTH_MM` (px for x0, y0)."""
     check_physical(owner, "f", cam.f, positive=True, max_abs=MAX_LENGTH_MM, unit="mm")
     for name in ("dx", "dy"):

@@ -206,7 +206,7 @@ def _check_nominal(args) -> None:
 
         if not all(abs(a) <= MAX_TILT_DEG for a in args.tilt_deg):
             raise CLIError(
-                f"--tilt-deg angles beyond what a Scheimpflug adapter allows (|tilt| <= "
+                f"--tilt-deg angles beyond any Scheimpflug camera's sensor tilt (|tilt| <= "
                 f"{MAX_TILT_DEG:g}°), got {args.tilt_deg}"
             )
 

@@ -92,7 +92,7 @@ _MODEL_DISTORTIONS = {
     "opencv": ("opencv",),
 }
 # Parameters that must be positive (name: why), and sensor tilts that must lie within
-# ±MAX_TILT_DEG (a Scheimpflug adapter's range with a wide margin: `_checks.py`); every
+# ±MAX_TILT_DEG (the steepest sensor tilt of a real Scheimpflug rig: `_checks.py`); every
 # length (mm) and pixel coordinate within ±MAX_LENGTH_MM (beyond any rig).
 _POSITIVE = {
     "f": "the focal length",
@@ -215,7 +215,7 @@ def _parameter(d, name: str, unit: str, where: str) -> float:
         )
     if unit == "deg" and name in _ANGLES and not abs(value) <= MAX_TILT_DEG:
         raise CalibrationFileError(
-            f"{at}.value = {value!r}° is beyond what a Scheimpflug adapter allows "
+            f"{at}.value = {value!r}° is beyond any Scheimpflug camera's sensor tilt "
             f"(|tilt| <= {MAX_TILT_DEG:g}°)"
         )
     if unit in ("mm", "px") and not abs(value) <= MAX_LENGTH_MM:
