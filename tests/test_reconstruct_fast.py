@@ -326,10 +326,10 @@ def test_vectorised_batch_equals_reference(dtype):
 
 
 @pytest.mark.parametrize("leaf", ["f", "x0"])
-def test_nan_camera_gives_invalid_pixels_and_nan_points(leaf):
+def test_nan_camera_gives_invalid_camera_and_nan_points(leaf):
     # The points loop's mask is `status + isnan(H[:3, 0]) == 0` per coordinate (so that
     # LLVM vectorises the loop, `_kernel._ok_per_coordinate`): equal to `status == OK`
-    # because a NaN in H makes every status INVALID_PIXEL. A NaN focal length puts NaN
+    # because a NaN in H makes every status INVALID_CAMERA. A NaN focal length puts NaN
     # in every entry of H (the mask's extra term is 1), a NaN x0 in its last column only
     # (the term is 0); both must give the reference's statuses (all invalid) and NaN.
     cam = eqx.tree_at(lambda c: getattr(c, leaf), _cameras()["thick"], jnp.asarray(np.nan))
@@ -338,11 +338,11 @@ def test_nan_camera_gives_invalid_pixels_and_nan_points(leaf):
     fast = sf.stripe_to_camera(cam, plane, uv)
     ref = _reference(cam, plane, uv, None)
     np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(ref.status))
-    assert (np.asarray(fast.status) == sf.Status.INVALID_PIXEL).all()
+    assert (np.asarray(fast.status) == sf.Status.INVALID_CAMERA).all()
     assert np.isnan(np.asarray(fast.points)).all()
     stage = sf.RotaryStage(np.eye(3), [1.0, 2.0, 3.0], math.radians(0.5))
     m = sf.stripe_to_measurement(cam, plane, stage, uv, 3)
-    assert (np.asarray(m.status) == sf.Status.INVALID_PIXEL).all()
+    assert (np.asarray(m.status) == sf.Status.INVALID_CAMERA).all()
     assert np.isnan(np.asarray(m.points)).all()
 
 

@@ -54,6 +54,19 @@ class AbstractCamera(eqx.Module):
         ok = ok_px & jnp.all(jnp.isfinite(ray.direction)) & jnp.all(jnp.isfinite(ray.origin))
         return _finite_ray(ray, ok), ok
 
+    def parameters_ok(self) -> Bool[Array, ""]:
+        """Whether the parameters describe a camera at all: every one finite (models add
+        their own conditions, e.g. a positive focal length and pixel pitch). Traceable:
+        the reconstruction marks every point of an invalid camera `INVALID_CAMERA`, also
+        under `jit`, where the constructors' checks cannot run."""
+        import jax
+
+        leaves = [x for x in jax.tree.leaves(self) if eqx.is_inexact_array(x)]
+        ok = jnp.asarray(True)
+        for x in leaves:
+            ok = ok & jnp.all(jnp.isfinite(x))
+        return ok
+
     def project(self, X: ArrayLike) -> Float[Array, "*batch 2"]:
         """Pixels of camera-frame points (mm → px).
 

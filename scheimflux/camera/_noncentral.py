@@ -63,7 +63,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._base import AbstractCamera, Ray
 from ._distortion import AbstractDistortion, NoDistortion
-from ._thick_lens import ThickLensScheimpflug, _homogeneous
+from ._thick_lens import ThickLensScheimpflug, _homogeneous, check_thick_lens_values
 
 _SHIFT_STEPS = 6
 # max |s − F(s)| after the steps (the shifts, mm), relative to max(1 mm, |s|): float64 rounding
@@ -120,6 +120,7 @@ class ThickLensNonCentral(AbstractCamera):
         for name in ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy"):
             if jnp.shape(getattr(self, name)) != ():
                 raise ValueError(f"ThickLensNonCentral.{name} must be a scalar")
+        check_thick_lens_values("ThickLensNonCentral", self)
         if jnp.shape(self.pupil) != (2,):
             raise ValueError(
                 f"ThickLensNonCentral.pupil must have shape (2,) (c1, c2), "
@@ -135,6 +136,9 @@ class ThickLensNonCentral(AbstractCamera):
                 f"ThickLensNonCentral.pivot must have shape (2,) (b1, b2), "
                 f"got {jnp.shape(self.pivot)}"
             )
+
+    def parameters_ok(self):
+        return super().parameters_ok() & (self.f > 0) & (self.dx > 0) & (self.dy > 0)
 
     @classmethod
     def from_central(cls, camera: ThickLensScheimpflug, pupil=None, lateral=None,

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import MAX_LENGTH_MM, check_physical, check_tilt
 from ._base import AbstractCamera, Ray
 from ._distortion import (
     AbstractDistortion,
@@ -117,6 +118,14 @@ class OpenCVCamera(AbstractCamera):
         for name in ("fx", "fy", "cx", "cy", "tau_x", "tau_y"):
             if jnp.shape(getattr(self, name)) != ():
                 raise ValueError(f"OpenCVCamera.{name} must be a scalar")
+        for name in ("fx", "fy"):
+            check_physical("OpenCVCamera", name, getattr(self, name), nonzero=True, unit="px",
+                           why=" (a focal length in px; negative for an inverted image)")
+        for name in ("cx", "cy"):
+            check_physical("OpenCVCamera", name, getattr(self, name), max_abs=MAX_LENGTH_MM,
+                           unit="px")  # fmt: skip
+        check_tilt("OpenCVCamera", "tau_x", self.tau_x)
+        check_tilt("OpenCVCamera", "tau_y", self.tau_y)
         if not isinstance(self.distortion, AbstractDistortion):
             raise TypeError(
                 "OpenCVCamera.distortion must be an AbstractDistortion, "
@@ -124,6 +133,9 @@ class OpenCVCamera(AbstractCamera):
             )
 
     # --- OpenCV interchange ----------------------------------------------------------
+    def parameters_ok(self):
+        return super().parameters_ok() & (self.fx != 0) & (self.fy != 0)
+
     @classmethod
     def from_opencv(cls, camera_matrix: ArrayLike, dist_coeffs: ArrayLike) -> OpenCVCamera:
         """From OpenCV's camera matrix (3×3) and distortion vector (4, 5, 8, 12 or 14).

@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._checks import MAX_LENGTH_MM, check_physical
 from ._base import AbstractCamera, Ray
 
 
@@ -30,6 +31,14 @@ class Pinhole(AbstractCamera):
         for name in ("alpha", "beta", "gamma", "x0", "y0"):
             if jnp.shape(getattr(self, name)) != ():
                 raise ValueError(f"Pinhole.{name} must be a scalar")
+        for name in ("alpha", "beta"):  # focal lengths in px
+            check_physical("Pinhole", name, getattr(self, name), nonzero=True, unit="px",
+                           why=" (a focal length in px; negative for an inverted image)")
+        for name in ("gamma", "x0", "y0"):
+            check_physical("Pinhole", name, getattr(self, name), max_abs=MAX_LENGTH_MM, unit="px")
+
+    def parameters_ok(self):
+        return super().parameters_ok() & (self.alpha != 0) & (self.beta != 0)
 
     @property
     def K(self) -> Float[Array, "3 3"]:

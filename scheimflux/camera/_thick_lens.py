@@ -6,12 +6,30 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .._checks import MAX_LENGTH_MM, check_physical, check_tilt
 from ..geometry._plane import LaserPlane
 from ..geometry._transforms import rot_x, rot_y
 from ._base import AbstractCamera, Ray
 from ._distortion import AbstractDistortion, NoDistortion, _solve2
 
 _FIXED_POINT_STEPS = 12
+
+
+def check_thick_lens_values(owner: str, cam) -> None:
+    """Physical bounds of a thick-lens camera built from numbers (tracers skipped): f and
+    the pixel pitch finite and positive (a negative pitch mirrors the image, f ≤ 0 has no
+    real image), the tilt within a Scheimpflug rig's range, lengths and the principal
+    pixel finite and within `MAX_LENGTH_MM` (px for x0, y0)."""
+    check_physical(owner, "f", cam.f, positive=True, max_abs=MAX_LENGTH_MM, unit="mm")
+    for name in ("dx", "dy"):
+        check_physical(owner, name, getattr(cam, name), positive=True, max_abs=MAX_LENGTH_MM,
+                       unit="mm", why=" (a pixel pitch <= 0 mirrors the image)")  # fmt: skip
+    for name in ("e", "z0"):
+        check_physical(owner, name, getattr(cam, name), max_abs=MAX_LENGTH_MM, unit="mm")
+    for name in ("x0", "y0"):
+        check_physical(owner, name, getattr(cam, name), max_abs=MAX_LENGTH_MM, unit="px")
+    check_tilt(owner, "phi", cam.phi)
+    check_tilt(owner, "theta", cam.theta)
 
 
 class ThickLensScheimpflug(AbstractCamera):
@@ -61,8 +79,12 @@ class ThickLensScheimpflug(AbstractCamera):
         for name in ("f", "e", "z0", "phi", "theta", "x0", "y0", "dx", "dy"):
             if jnp.shape(getattr(self, name)) != ():
                 raise ValueError(f"ThickLensScheimpflug.{name} must be a scalar")
+        check_thick_lens_values("ThickLensScheimpflug", self)
 
     # --- the matrices of the paper -------------------------------------------------
+    def parameters_ok(self):
+        return super().parameters_ok() & (self.f > 0) & (self.dx > 0) & (self.dy > 0)
+
     @property
     def R_s(self) -> Float[Array, "3 3"]:
         """Sensor tilt `R_y(θ) R_x(φ)` (about the point where the axis meets the sensor)."""

@@ -211,8 +211,14 @@ def _check_nominal(args) -> None:
     if pitch is not None and (len(pitch) > 2 or not all(p > 0 and p < 1e300 for p in pitch)):
         raise CLIError(f"--pixel-pitch-mm must be one or two positive numbers (mm), got {pitch}")
     require_positive(args, "focal_length_mm", "magnification")
-    if args.tilt_deg is not None and not all(abs(a) < 90 for a in args.tilt_deg):
-        raise CLIError(f"--tilt-deg angles must lie within ±90°, got {args.tilt_deg}")
+    if args.tilt_deg is not None:
+        from .._checks import MAX_TILT_DEG
+
+        if not all(abs(a) <= MAX_TILT_DEG for a in args.tilt_deg):
+            raise CLIError(
+                f"--tilt-deg angles beyond any Scheimpflug camera's sensor tilt (|tilt| <= "
+                f"{MAX_TILT_DEG:g}°), got {args.tilt_deg}"
+            )
 
 
 def _check_opencv(args) -> None:

@@ -43,6 +43,11 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def output_paths(args) -> dict[str, list[str]]:
+    """The file this command writes (checked against its inputs by `_main`)."""
+    return {"opencv": [args.opencv]}
+
+
 def run(args: argparse.Namespace) -> int:
     from ..export._opencv import export_opencv
 

@@ -29,7 +29,15 @@ from ..stripe._folder import (
 )
 from ..stripe._image import CHANNELS
 from ..stripe._steep import steep_note
-from ._common import CLIError, check_output, progress, refuse_to_clobber, warn
+from ._common import (
+    CLIError,
+    check_output,
+    progress,
+    refuse_to_clobber,
+    require_positive,
+    warn,
+    warn_unmatched_laser_off,
+)
 
 
 def register(subparsers) -> None:
@@ -80,10 +88,12 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    require_positive(args, "width_px")
     try:
         pairs = frame_files(args.frames_dir, args.laser_off)
     except ValueError as err:
         raise CLIError(str(err)) from None
+    warn_unmatched_laser_off("extract", args.frames_dir, args.laser_off, pairs)
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
     refuse_to_clobber(args.out, overwrite=args.overwrite)

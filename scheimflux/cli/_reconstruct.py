@@ -37,7 +37,7 @@ import argparse
 
 import numpy as np
 
-from ._common import CLIError, check_output
+from ._common import CLIError, check_output, require_positive, warn_unmatched_laser_off
 
 
 def register(subparsers) -> None:
@@ -108,10 +108,12 @@ def _folder_source(args):
 
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
+    require_positive(args, "width_px")
     try:
         pairs = frame_files(args.stripes, args.laser_off)
     except ValueError as err:
         raise CLIError(str(err)) from None
+    warn_unmatched_laser_off("reconstruct", args.stripes, args.laser_off, pairs)
     numbering = numbering_problem([p for p, _ in pairs])
     if numbering and args.frame == "measurement":
         raise CLIError(numbering_refusal(args.stripes, numbering, "delta omega"))

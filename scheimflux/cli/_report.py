@@ -31,6 +31,12 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def output_paths(args) -> dict[str, list[str]]:
+    """The files this command writes (checked against its inputs by `_main`); the PNG
+    folder is an output, not an input."""
+    return {"out": [args.out], "png_dir": []}
+
+
 def run(args) -> int:
     from ..report import build_report, write_report
 

@@ -178,6 +178,12 @@ def _check(args) -> None:
         raise CLIError(f"--views must be at least 1, got {args.views}")
     if args.frames < 0:
         raise CLIError(f"--frames must be >= 0, got {args.frames}")
+    dw = args.delta_omega_deg
+    if args.frames > 0 and not (math.isfinite(dw) and 0 < abs(dw) < 360):
+        # a table step of 0 turns nothing: detect and the calibration reader refuse it
+        raise CLIError(
+            f"--delta-omega-deg must be a non-zero table step within ±360°, got {dw:g}"
+        )
     require_positive(args, "corner_noise_px", "stripe_noise_px", zero_ok=True)
     require_positive(args, "gauge_radius_mm", "square_mm", "marker_mm", "circle_diameter_mm")
     if args.marker_mm is not None and args.target != "charuco":
@@ -329,6 +335,12 @@ def _swap_in(staging: str, out: str, names: list[str]) -> None:
             os.replace(os.path.join(staging, name), os.path.join(out, name))
     finally:
         shutil.rmtree(aside, ignore_errors=True)
+
+
+def output_paths(args) -> dict[str, list[str]]:
+    """The files this command writes into the --out folder (checked against its inputs,
+    e.g. a --lens prescription file, by `_main`)."""
+    return {"out": [os.path.join(os.fspath(args.out), name) for name in _FILES]}
 
 
 def run(args) -> int:

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from .._checks import MAX_LENGTH_MM, MAX_TILT_DEG
 from ..camera._distortion import Division, NoDistortion, OpenCVDistortion, RadialTangential
 from ..camera._noncentral import ThickLensNonCentral
 from ..camera._opencv import OpenCVCamera
@@ -90,7 +91,9 @@ _MODEL_DISTORTIONS = {
     "pinhole": ("none",),
     "opencv": ("opencv",),
 }
-# Parameters that must be positive (name: why), and angles that must lie within ±90°.
+# Parameters that must be positive (name: why), and sensor tilts that must lie within
+# ±MAX_TILT_DEG (the steepest sensor tilt of a real Scheimpflug rig: `_checks.py`); every
+# length (mm) and pixel coordinate within ±MAX_LENGTH_MM (beyond any rig).
 _POSITIVE = {
     "f": "the focal length",
     "z0": "the sensor lies behind the lens",
@@ -178,6 +181,16 @@ def _vector(v, n: int, where: str) -> np.ndarray:
     return np.array([_number(x, f"{where}[{i}]") for i, x in enumerate(v)], dtype=np.float64)
 
 
+def _lengths(v: np.ndarray, where: str) -> np.ndarray:
+    """`v` (mm), refused beyond `MAX_LENGTH_MM` in any component (no rig is that large)."""
+    if not np.all(np.abs(v) <= MAX_LENGTH_MM):
+        raise CalibrationFileError(
+            f"{where} = {_floats(v)} mm is beyond any real rig (each |component| <= "
+            f"{MAX_LENGTH_MM:g} mm)"
+        )
+    return v
+
+
 def _matrix3(v, where: str) -> np.ndarray:
     if not isinstance(v, list) or len(v) != 3:
         raise CalibrationFileError(f"{where} must be a 3x3 list of lists")
@@ -200,8 +213,16 @@ def _parameter(d, name: str, unit: str, where: str) -> float:
         raise CalibrationFileError(
             f"{at}.value must be positive ({_POSITIVE[name]}), got {value!r} {unit}"
         )
-    if unit == "deg" and name in _ANGLES and not abs(value) < 90.0:
-        raise CalibrationFileError(f"{at}.value must lie within ±90°, got {value!r}°")
+    if unit == "deg" and name in _ANGLES and not abs(value) <= MAX_TILT_DEG:
+        raise CalibrationFileError(
+            f"{at}.value = {value!r}° is beyond any Scheimpflug camera's sensor tilt "
+            f"(|tilt| <= {MAX_TILT_DEG:g}°)"
+        )
+    if unit in ("mm", "px") and not abs(value) <= MAX_LENGTH_MM:
+        raise CalibrationFileError(
+            f"{at}.value = {value!r} {unit} is beyond any real rig (|value| <= "
+            f"{MAX_LENGTH_MM:g} {unit})"
+        )
     return math.radians(value) if unit == "deg" else value
 
 
@@ -226,14 +247,17 @@ def _camera(doc: dict, model: str):
         )
     _check_keys(dd, ("model",) + DISTORTION_PARAMETERS[dname], "camera.distortion")
     coeffs = [_parameter(dd, p, "1", "camera.distortion") for p in DISTORTION_PARAMETERS[dname]]
-    if model == "pinhole":
-        return Pinhole(**values), dname
-    dist = _DISTORTION_CLASSES[dname](*coeffs)
-    if model == "thick-lens-noncentral":
-        values["pupil"] = (values.pop("c1"), values.pop("c2"))
-        values["lateral"] = (values.pop("ax", 0.0), values.pop("ay", 0.0))
-        values["pivot"] = (values.pop("b1", 0.0), values.pop("b2", 0.0))
-    return _CAMERA_CLASSES[model](**values, distortion=dist), dname
+    try:  # the constructors' physical checks, as a file error naming the camera
+        if model == "pinhole":
+            return Pinhole(**values), dname
+        dist = _DISTORTION_CLASSES[dname](*coeffs)
+        if model == "thick-lens-noncentral":
+            values["pupil"] = (values.pop("c1"), values.pop("c2"))
+            values["lateral"] = (values.pop("ax", 0.0), values.pop("ay", 0.0))
+            values["pivot"] = (values.pop("b1", 0.0), values.pop("b2", 0.0))
+        return _CAMERA_CLASSES[model](**values, distortion=dist), dname
+    except (TypeError, ValueError) as err:
+        raise CalibrationFileError(f"camera: {err}") from None
 
 
 def _plane(doc: dict) -> LaserPlane | None:
@@ -246,6 +270,11 @@ def _plane(doc: dict) -> LaserPlane | None:
     norm = float(np.linalg.norm(n))
     if norm == 0:
         raise CalibrationFileError("laser_plane.n_per_mm must not be zero")
+    if not 1.0 / norm <= MAX_LENGTH_MM:
+        raise CalibrationFileError(
+            f"laser_plane.n_per_mm puts the plane {1.0 / norm:.3g} mm from the projection "
+            f"centre, beyond any real rig (at most {MAX_LENGTH_MM:g} mm)"
+        )
     if not 1.0 / norm >= MIN_PLANE_DISTANCE_MM:
         raise CalibrationFileError(
             f"laser_plane.n_per_mm is degenerate: the plane passes {1e3 / norm:.3g} µm from "
@@ -283,7 +312,8 @@ def _stage(doc: dict) -> tuple[RotaryStage | None, np.ndarray | None]:
         raise CalibrationFileError(
             f"stage.R_m_c is not a rotation matrix (max |R^T R - I| = {err:.3g}, det = {det:.9g})"
         )
-    t = _vector(_require(sd, "t_m_c_mm", "stage"), 3, "stage.t_m_c_mm")
+    t = _lengths(_vector(_require(sd, "t_m_c_mm", "stage"), 3, "stage.t_m_c_mm"),
+                 "stage.t_m_c_mm")  # fmt: skip
     dw_deg = _number(_require(sd, "delta_omega_deg", "stage"), "stage.delta_omega_deg")
     if not 0 < abs(dw_deg) < 360:
         raise CalibrationFileError(
@@ -291,7 +321,8 @@ def _stage(doc: dict) -> tuple[RotaryStage | None, np.ndarray | None]:
         )
     ecc = None
     if sd.get("gauge_eccentricity_mm") is not None:
-        ecc = _vector(sd["gauge_eccentricity_mm"], 2, "stage.gauge_eccentricity_mm")
+        ecc = _lengths(_vector(sd["gauge_eccentricity_mm"], 2, "stage.gauge_eccentricity_mm"),
+                       "stage.gauge_eccentricity_mm")  # fmt: skip
     return RotaryStage(pose=Pose.from_matrix(R, t), delta_omega=math.radians(dw_deg)), ecc
 
 
@@ -325,7 +356,10 @@ def _poses(doc: dict) -> Pose:
     pd = _object(pd, "board_poses")
     _check_keys(pd, _POSES_KEYS, "board_poses")
     rv = _rows(_require(pd, "rotvec", "board_poses"), "board_poses.rotvec")
-    t = _rows(_require(pd, "translation_mm", "board_poses"), "board_poses.translation_mm")
+    t = _lengths(
+        _rows(_require(pd, "translation_mm", "board_poses"), "board_poses.translation_mm"),
+        "board_poses.translation_mm",
+    )
     if len(rv) != len(t):
         raise CalibrationFileError(
             f"board_poses.rotvec has {len(rv)} rows but board_poses.translation_mm {len(t)}"
@@ -341,9 +375,13 @@ def table_pose(doc: dict) -> Pose | None:
     pd = _object(pd, "table_target_pose")
     _check_keys(pd, _POSES_KEYS, "table_target_pose")
     rv = _vector(_require(pd, "rotvec", "table_target_pose"), 3, "table_target_pose.rotvec")
-    t = _vector(
-        _require(pd, "translation_mm", "table_target_pose"), 3, "table_target_pose.translation_mm"
-    )
+    t = _lengths(
+        _vector(
+            _require(pd, "translation_mm", "table_target_pose"), 3,
+            "table_target_pose.translation_mm",
+        ),
+        "table_target_pose.translation_mm",
+    )  # fmt: skip
     return Pose(rv, t)
 
 
@@ -353,4 +391,48 @@ def _diagnostics(doc: dict) -> dict:
         return {}
     if not isinstance(diagnostics, dict):
         raise CalibrationFileError("diagnostics must be a JSON object")
+    _check_recorded_sigma(diagnostics)
     return diagnostics
+
+
+def _check_recorded_sigma(diagnostics: dict) -> None:
+    """The file's values against its own recorded diagnostics, where it records enough:
+    a parameter listed in `diagnostics.frozen` was held fixed, so it cannot have a σ in
+    `diagnostics.uncertainty.std`, and every recorded σ is a finite number >= 0 (or
+    null, written for an undetermined one).
+
+    (The value a frozen parameter was held at is not recorded in the file — only in the
+    observations it was computed from — so a frozen value edited afterwards is caught
+    only by the physical bounds, not by comparison.)"""
+    frozen = diagnostics.get("frozen")
+    if frozen is not None and (
+        not isinstance(frozen, list) or not all(isinstance(p, str) for p in frozen)
+    ):
+        raise CalibrationFileError(
+            f"diagnostics.frozen must be a list of parameter names, got {frozen!r}"
+        )
+    unc = diagnostics.get("uncertainty")
+    std = unc.get("std") if isinstance(unc, dict) else None
+    if std is None:
+        return
+    if not isinstance(std, dict):
+        raise CalibrationFileError("diagnostics.uncertainty.std must be a JSON object")
+    for name, sigma in std.items():
+        if sigma is None:  # written for a σ that was not finite (undetermined)
+            continue
+        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (
+            math.isfinite(sigma) and sigma >= 0
+        ):
+            raise CalibrationFileError(
+                f"diagnostics.uncertainty.std.{name} must be a finite number >= 0 (a "
+                f"standard deviation), got {sigma!r}"
+            )
+    for p in frozen or ():
+        clash = [k for k in std if k == p or k.startswith((p + ".", p + "["))]
+        if clash:
+            raise CalibrationFileError(
+                f"the file contradicts its own diagnostics: {p} is listed in "
+                f"diagnostics.frozen (held fixed) but diagnostics.uncertainty.std gives "
+                f"it a standard deviation ({clash[0]}); the file was edited or "
+                "assembled from two calibrations"
+            )

@@ -25,6 +25,7 @@ import os
 import signal
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -60,6 +61,8 @@ def load_json(path: str | os.PathLike, what: str) -> Any:
         raise ValueError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text (UTF-8 JSON) file") from None
+    except RecursionError:  # e.g. 100 000 nested `[`: no file of ours nests that deep
+        raise ValueError(f"{path}: not a {what} file (JSON nested too deeply to read)") from None
     except PermissionError:
         raise PermissionError(f"{path}: no permission to read it") from None
 
@@ -78,7 +81,57 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool) -> str:
         raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
     folder = os.path.dirname(os.path.abspath(path))
     check_folder_writable(folder)
+    _check_name_length(path, folder)
     return path
+
+
+# What `atomic_output` adds to the output's name for its temporary file: the prefix, a
+# dash, mkstemp's 8 random characters and a suffix of up to 8 (".parquet").
+_TMP_EXTRA = len(TMP_PREFIX) + 1 + 8 + 8
+
+
+def _check_name_length(path: str, folder: str) -> None:
+    """Refuse a file name too long for the folder's file system, counting the temporary
+    name `atomic_output` writes first, before any work (`OSError` ENAMETOOLONG)."""
+    name = os.path.basename(path)
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    size = len(os.fsencode(name))
+    if size + _TMP_EXTRA > limit:
+        raise OSError(
+            errno.ENAMETOOLONG,
+            f"file name too long ({size} bytes; this file system allows {limit}, of which "
+            f"{_TMP_EXTRA} go to the temporary name written first)",
+            path,
+        )
+
+
+def stale_temporaries(path: str | os.PathLike) -> list[tuple[str, float, int]]:
+    """The temporary files that an earlier write of `path` left beside it (a run killed
+    by SIGKILL or a power cut between the write and the move): `(file, age in seconds,
+    size in bytes)` for each `.tmp-<name>-*` file in its folder."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    start = f"{TMP_PREFIX}{os.path.basename(path)}-"
+    out = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return out
+    now = time.time()
+    for entry in entries:
+        if not entry.name.startswith(start):
+            continue
+        try:
+            st = entry.stat(follow_symlinks=False)
+        except OSError:
+            continue
+        if not entry.is_file(follow_symlinks=False):
+            continue
+        out.append((entry.path, now - st.st_mtime, st.st_size))
+    return sorted(out)
 
 
 def check_folder_writable(folder: str | os.PathLike) -> str:
@@ -177,11 +230,18 @@ def atomic_output(
         )
         os.close(fd)
         try:
-            yield tmp
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
-            _commit(tmp, path, overwrite)
+            try:
+                yield tmp
+                umask = os.umask(0)
+                os.umask(umask)
+                os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; the usual permissions
+                _commit(tmp, path, overwrite)
+            except OSError as err:
+                if err.errno is None or err.filename == path:
+                    raise
+                # e.g. ENOSPC from a write into the temporary file: name the output, not
+                # the hidden temporary name (which is removed below)
+                raise OSError(err.errno, err.strerror or str(err), path) from None
         finally:
             if os.path.lexists(tmp):
                 os.unlink(tmp)

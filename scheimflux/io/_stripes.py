@@ -205,6 +205,10 @@ class _Tokens:
         while True:
             try:
                 v, end = self.decoder.raw_decode(self.buf, self.pos)
+            except RecursionError:  # e.g. 100 000 nested `[`
+                raise ValueError(
+                    f"{self.path}: not a stripes file (JSON nested too deeply to read)"
+                ) from None
             except json.JSONDecodeError as err:
                 # A value cut by the end of the buffer: read more; at the end of the
                 # file it is truncated (or malformed).

@@ -40,6 +40,10 @@ def read_points(path: str | os.PathLike) -> tuple[np.ndarray, str | None]:
                 doc = json.load(fh)
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
             raise ValueError(f"{path}: not a readable JSON points file ({err})") from None
+        except RecursionError:
+            raise ValueError(
+                f"{path}: not a points file (JSON nested too deeply to read)"
+            ) from None
         if not isinstance(doc, dict) or doc.get("format") != POINTS_FORMAT:
             raise ValueError(f"{path}: not a {POINTS_FORMAT} file")
         frame = doc.get("frame")
@@ -57,6 +61,13 @@ def read_points(path: str | os.PathLike) -> tuple[np.ndarray, str | None]:
             raise ValueError(f"{path}: not a readable .npy file ({err})") from None
         if pts.ndim < 2 or pts.shape[-1] != 3:
             raise ValueError(f"{path}: expected points of shape (..., 3), got {pts.shape}")
+        if np.issubdtype(pts.dtype, np.floating) and pts.dtype.itemsize < 4:
+            # as the library refuses them (`_checks.as_points`): float16 holds 150 mm to
+            # ~0.06 mm, the precision is already lost
+            raise ValueError(
+                f"{path}: points are {pts.dtype.name}, too coarse for metrology; "
+                "write them as float32 or float64"
+            )
         pts = pts.reshape(-1, 3).astype(np.float64)
         pts = pts[~np.isnan(pts).any(axis=1)]
     else:
@@ -78,6 +89,8 @@ def _read_labels(path: str, n: int) -> np.ndarray:
         raise FileNotFoundError(f"{path}: no such labels file") from None
     except (OSError, ValueError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: not a readable labels file ({err})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a labels file (JSON nested too deeply to read)") from None
     lab = np.ravel(lab)
     if lab.shape != (n,) or not np.issubdtype(lab.dtype, np.integer):
         raise ValueError(f"{path}: expected {n} integer labels (one per valid point)")

@@ -22,7 +22,8 @@ are those of the reference (`intersect_ray_plane` on `backproject_one_with_mask`
   `(n · h)² < PARALLEL_COS² |n|² |h|²` (no square root; equal to the reference except
   for rounding within an ulp of the threshold);
 - `BEHIND_CAMERA`: `t = h[3] |P| / (n · h) ≤ 0`, i.e. `h[3] (n · h) ≤ 0`;
-- `OUTSIDE_SENSOR`: as the reference.
+- `OUTSIDE_SENSOR`: as the reference;
+- `INVALID_CAMERA`: `camera.parameters_ok()` is False (every pixel), as the reference.
 
 The points loop replaces the pixels of non-OK points by 0 before the arithmetic (double
 `where`), so gradients of a masked loss stay finite, as in the reference; the status
@@ -49,7 +50,7 @@ from ..geometry._stage import RotaryStage
 PARALLEL_COS = 1e-3
 DEGENERATE_PLANE_MM = 1e-3
 
-_OK, _INVALID, _PARALLEL, _BEHIND, _DEGENERATE, _OUTSIDE = 0, 1, 2, 3, 4, 5
+_OK, _INVALID, _PARALLEL, _BEHIND, _DEGENERATE, _OUTSIDE, _CAMERA = 0, 1, 2, 3, 4, 5, 6
 
 
 def plane_ok(plane: LaserPlane) -> Bool[Array, ""]:
@@ -118,10 +119,10 @@ def _rays(camera: AbstractCamera, plane: LaserPlane, u, v):
         ok = ok & ok_u
     p_ok = plane_ok(plane)
     n = jnp.where(p_ok, plane.n, jnp.zeros_like(plane.n).at[2].set(1.0))
-    return H, su, sv, n, fin, ok, p_ok
+    return H, su, sv, n, fin, ok, p_ok, camera.parameters_ok()
 
 
-def _status(H, su, sv, n, fin, ok, p_ok, u, v, sensor):
+def _status(H, su, sv, n, fin, ok, p_ok, c_ok, u, v, sensor):
     """int8 `Status` codes of the pixels (`_rays`' output and the raw pixels `u`, `v`)."""
     h = [H[i, 0] * su + H[i, 1] * sv + H[i, 2] for i in range(4)]
     hh = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
@@ -141,7 +142,7 @@ def _status(H, su, sv, n, fin, ok, p_ok, u, v, sensor):
     if sensor is not None:
         inside = (u >= -0.5) & (u <= sensor[0] - 0.5) & (v >= -0.5) & (v <= sensor[1] - 0.5)
         code = jnp.where(fin & ~inside & (code != _INVALID), jnp.int8(_OUTSIDE), code)
-    return code
+    return jnp.where(c_ok, code, jnp.int8(_CAMERA))
 
 
 def _affine3(M, su, sv):
@@ -164,7 +165,7 @@ def _ok_per_coordinate(code, H3):
     was vectorised). Here the mask is `code + z_j == 0` with `z = isnan(H3[:, 0])` as int8,
     a per-coordinate value computed at run time, so the condition differs between the
     inner iterations and nothing is unswitched. `z` is 0 unless `H` holds a NaN, and then
-    every `h` is NaN and every status `INVALID_PIXEL`; the codes are ≥ 0, so the mask is
+    every `h` is NaN and every status `INVALID_CAMERA`; the codes are ≥ 0, so the mask is
     exactly `code == OK` in every case (bit-identical points)."""
     z = jnp.isnan(H3[:, 0]).astype(code.dtype)
     return (code[..., None] + z) == _OK

@@ -35,6 +35,7 @@ class Status(enum.IntEnum):
     BEHIND_CAMERA = 3  # the intersection lies behind the ray's origin
     DEGENERATE_PLANE = 4  # the laser plane is not finite or passes through the camera centre
     OUTSIDE_SENSOR = 5  # the pixel lies outside the sensor given as `sensor_size`
+    INVALID_CAMERA = 6  # the camera's parameters describe no camera (f <= 0 or NaN, ...)
 
 
 class Reconstruction(eqx.Module):
@@ -132,7 +133,8 @@ def _pixel_to_camera(camera: AbstractCamera, plane: LaserPlane, uv, sensor):
             jnp.int8(Status.OUTSIDE_SENSOR),
             status,
         )
-        X = jnp.where(status == Status.OK, X, jnp.nan)
+    status = jnp.where(camera.parameters_ok(), status, jnp.int8(Status.INVALID_CAMERA))
+    X = jnp.where(status == Status.OK, X, jnp.nan)
     return X, status
 
 
@@ -147,9 +149,27 @@ def reference_stripe_to_camera(camera, plane, uv, sensor=None):
     return Reconstruction(X.reshape(uv.shape[:-1] + (3,)), status.reshape(uv.shape[:-1]))
 
 
-def _check_plane(plane: LaserPlane) -> None:
+def _check_plane(plane, camera) -> None:  # unannotated: checked here, by hand
+    if not isinstance(camera, AbstractCamera):
+        raise TypeError(
+            f"camera must be a camera model (an AbstractCamera), got {type(camera).__name__}"
+        )
     if not isinstance(plane, LaserPlane):
         raise TypeError(f"plane must be a LaserPlane, got {type(plane).__name__}")
+
+
+def _check_stage(stage) -> None:
+    if not isinstance(stage, RotaryStage):
+        raise TypeError(f"stage must be a RotaryStage, got {type(stage).__name__}")
+
+
+def _check_frame_index(fi) -> None:
+    """A concrete `frame_index` must hold finite numbers (NaN turns every point by NaN:
+    NaN points that the status would call valid)."""
+    if isinstance(fi, jax.core.Tracer):
+        return
+    if jnp.issubdtype(fi.dtype, jnp.floating) and not bool(np.all(np.isfinite(np.asarray(fi)))):
+        raise ValueError("frame_index must be finite frame numbers, got NaN or infinity")
 
 
 def _sensor(sensor_size, dtype):
@@ -201,9 +221,10 @@ def stripe_to_camera(
 
     **Returns:** a `Reconstruction` with `points` `(*batch, 3)` (mm, NaN where invalid)
     and `status` `(*batch,)` (`Status` codes: invalid pixel, ray parallel to the plane,
-    intersection behind the camera, degenerate plane, outside the sensor).
+    intersection behind the camera, degenerate plane, outside the sensor, invalid
+    camera).
     """
-    _check_plane(plane)
+    _check_plane(plane, camera)
     uv = as_points(uv, 2, "uv")
     sensor = _sensor(sensor_size, uv.dtype)
     if has_fast_path(camera):
@@ -281,12 +302,14 @@ def stripe_to_measurement(
 
     **Returns:** a `Reconstruction` in the measurement frame.
     """
-    _check_plane(plane)
+    _check_plane(plane, camera)
+    _check_stage(stage)
     uv = as_points(uv, 2, "uv")
     batch = uv.shape[:-1]
     fi = frame_index if isinstance(frame_index, jax.Array) else np.asarray(frame_index)
     if not (jnp.issubdtype(fi.dtype, jnp.integer) or jnp.issubdtype(fi.dtype, jnp.floating)):
         raise ValueError(f"frame_index must be numbers, got dtype {fi.dtype}")
+    _check_frame_index(fi)
     ok = fi.ndim == 0 or (
         fi.ndim == len(batch) and all(a in (1, b) for a, b in zip(fi.shape, batch))
     )

@@ -16,6 +16,7 @@ REASONS = {
     3: "intersection behind the camera",
     4: "degenerate laser plane (not finite, or through the camera centre)",
     5: "outside the sensor",
+    6: "invalid camera (focal length or pixel pitch not finite and positive)",
 }
 
 
