@@ -1,8 +1,13 @@
 """Checkerboard corner detection (OpenCV), ordered like `Checkerboard.points_mm`.
 
 `detect_checkerboard` runs OpenCV's `findChessboardCornersSB` (sector-based detector,
-with its accuracy refinement) on a robustly normalised 8-bit copy of the image, and
-optionally refines the corners with `cornerSubPix` on the full-precision image.
+with its accuracy refinement) on a robustly normalised 8-bit copy of the image, then,
+where it finds nothing, OpenCV's classic `findChessboardCorners` (quads of an adaptive
+threshold), and refines the corners with `cornerSubPix` on the full-precision image.
+Neither detector finds every board the other does: on real photographs (benchmarks/
+realdata_detect.py) the sector-based one missed 8 of 14 views of a board lit by a red
+laser line and a second board beside it that the classic one found, and the classic one
+missed boards under strong barrel distortion that the sector-based one found.
 
 OpenCV returns the corner grid in an order fixed only up to the pattern's symmetry
 (180° for a rectangular board, 90° for a square one). The order is resolved here:
@@ -172,6 +177,16 @@ def _sector_based(img8: np.ndarray, size: tuple[int, int]):
     return found, corners
 
 
+_CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+
+
+def _classic(img8: np.ndarray, size: tuple[int, int]):
+    """`cv2.findChessboardCorners` (adaptive threshold): whole-pixel corners of the quads
+    it found, to be refined with `cornerSubPix`."""
+    found, corners = cv2.findChessboardCorners(img8, size, flags=_CLASSIC_FLAGS)
+    return bool(found), corners
+
+
 def detect_checkerboard(
     image: Any,
     board: Any,
@@ -186,13 +201,16 @@ def detect_checkerboard(
       `(H, W, 3)` BGR is converted to grey).
     - `board`: a `Checkerboard` (inner corners `cols x rows`, `points_mm`).
     - `refine`: refine the corners with `cv2.cornerSubPix` on the full-precision image
-      (the search then runs on a half-size copy of images at least 480 px high, which
+      (always done when the classic detector found them; the search then runs on a half-size copy of images at least 480 px high, which
       is about five times faster). On rendered 1600 x 1200 images of an 11 x 8 board
       (five poses, some tilted 25°) the worst corner error is 0.03–0.08 px with
       `cornerSubPix` for blur sigma 0–2.5 px and 0.5–1 % noise, against 0.1 px (sharp)
       to 0.38 px (blurred) with `findChessboardCornersSB`'s `CALIB_CB_ACCURACY` alone.
     - `mirrored`: the image is mirrored (taken through a mirror): keep the order with the
       opposite handedness.
+
+    The sector-based detector runs first (on the half-size copy, then, failing that,
+    the classic detector and the sector-based one at full size).
 
     **Returns:** a [`DetectionResult`][]: corners in the order of `board.points_mm`,
     all NaN when the board was not found (OpenCV finds all corners or none), with a
@@ -212,6 +230,10 @@ def detect_checkerboard(
         found, corners = _sector_based(small, size)
         if found and corners is not None:
             corners = (corners.astype(np.float64) + 0.5) * 2.0 - 0.5  # pixel centres
+    classic = False
+    if not found:
+        found, corners = _classic(img8, size)
+        classic = found
     if not found:
         found, corners = _sector_based(img8, size)
     if not found or corners is None or len(corners) != size[0] * size[1]:
@@ -223,6 +245,6 @@ def detect_checkerboard(
     grid = corners.reshape(size[1], size[0], 2).astype(np.float64)
     grid, note = _orient(grid, norm, board, mirrored)
     uv = grid.reshape(-1, 2)
-    if refine:
+    if refine or classic:  # the classic detector's corners are the quads' (whole pixels)
         uv = _refine(norm, uv, _spacing(grid))
     return DetectionResult(np.ascontiguousarray(uv), True, note)
