@@ -131,7 +131,11 @@ def _orient(grid: np.ndarray, img: np.ndarray, board, mirrored: bool) -> tuple[n
         best = finite[0]
         if len(finite) == 1 or best[0] - finite[1][0] > 0.1:
             return best[1], ""
-        note = "orientation ambiguous (squares too faint, or the board's colours symmetric)"
+        if cols % 2 and rows % 2:  # (cols + 1) x (rows + 1) squares, both even
+            note = (f"symmetric board ({cols + 1} x {rows + 1} squares: a half turn looks "
+                    "the same)")  # fmt: skip
+        else:
+            note = "orientation ambiguous (squares too faint)"
     else:
         note = "orientation ambiguous: no square of the board could be read in the image"
     # fall back on the order whose corner 0 is nearest the image's top-left
