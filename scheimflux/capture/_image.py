@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..stripe._image import channel_image, estimate_noise
+from ..targets._charuco import _spans_plane
 from ..targets._circles import CircleGrid, circle_diameters_mm
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
@@ -131,6 +132,10 @@ def _too_few(res, target, min_points: int) -> str:
         return res.message or f"{target.kind} not found"
     if n < min_points:
         return f"only {n} target points found; {min_points} needed"
+    pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
+    if not _spans_plane(np.asarray(target.points_mm, np.float64)[res.mask, :2], pitch):
+        # a board's pose needs its points to span the board's plane, not one line of it
+        return f"the {n} target points found lie on one line of the board: no pose"
     return ""
 
 
@@ -227,7 +232,11 @@ def find_target(image, off, target: Target, *, single: bool, min_points: int,
     if off is None and single and isinstance(target, CircleGrid) and laser_in_board(image):
         opened = laser_removed(image, target)
         found_in = image if opened is None else opened
-    res = detect_target(laser_free(found_in), target, mirrored=mirrored)
+    # the channel minimum keeps a coloured laser out of an image that holds one; a laser-off
+    # image (a pair's board image, a laser-off image) is read in luma, which has the
+    # better signal (JPEG keeps it at full resolution, the colours at half)
+    lit = single and off is None
+    res = detect_target(laser_free(found_in) if lit else found_in, target, mirrored=mirrored)
     return res, opened, _too_few(res, target, min_points)
 
 
