@@ -58,11 +58,24 @@ def _turns(target: Target) -> list[np.ndarray]:
         perm = d.argmin(axis=1)
         if d[np.arange(len(xy)), perm].max() > 1e-6 * scale or len(set(perm)) != len(xy):
             continue
-        if isinstance(target, Checkerboard) and k and not (target.cols % 2 and target.rows % 2
-                                                          and k == 2):  # fmt: skip
+        if isinstance(target, Checkerboard) and not _colours_kept(target, R, c):
             continue
         out.append(perm)
     return out
+
+
+def _colours_kept(board, R: np.ndarray, c: np.ndarray) -> bool:
+    """Whether turning the checkerboard by `R` about `c` puts every square on one of its
+    own colour (a half turn: when cols + rows is even, e.g. 11 x 7 or 8 x 6 inner
+    corners)."""
+    from ..targets._detect import _squares
+
+    centres, colours = _squares(board.cols, board.rows, board.square_mm)
+    q = (centres - c) @ R.T + c
+    d = np.linalg.norm(q[:, None, :] - centres[None, :, :], axis=-1)
+    j = d.argmin(axis=1)
+    return bool(np.all(d[np.arange(len(q)), j] < 1e-6 * board.square_mm)
+                and np.all(colours[j] == colours))  # fmt: skip
 
 
 def _x_axis(uv: np.ndarray, xy: np.ndarray) -> float | None:
@@ -94,9 +107,12 @@ def consistent_order(target: Target, corners: list[np.ndarray]) -> list[tuple[in
     in the other (portrait) gets orders a half turn apart from one view to the next
     (measured: mozhi-lightplane, 7 of 20 views near ±90 degrees, two of them ordered the
     other way). Here the order of each view is the turn whose board x axis in the image
-    lies nearest the views' mean direction: the mean of `exp(i n θ)` over the views (`n`
-    the number of turns, θ each view's x axis, so that turned orders agree), its
-    direction nearest the image's +u axis.
+    lies nearest the views' mean direction: first the mean of `exp(i n θ)` over the views
+    (`n` the number of turns, θ each view's x axis, so that turned orders agree), its
+    direction nearest the image's +u axis; then the mean of the chosen axes themselves,
+    until no choice changes (a view in portrait, 90 degrees from the rest, then joins
+    the other portrait views: measured on srv-turntable-webcam, ten views at -94 to -90
+    degrees and one at +85 against 80 at -16 to +4).
 
     **Returns:** `[(index into corners, turned points)]`, only those that change.
     """
@@ -114,14 +130,16 @@ def consistent_order(target: Target, corners: list[np.ndarray]) -> list[tuple[in
     # the branch of the mean nearest +u (the top-left rule's own preference)
     branches = mean + 2 * math.pi * np.arange(n) / n
     ref = branches[np.argmin(np.abs(np.angle(np.exp(1j * branches))))]
-    out = []
-    for i, (c, a) in enumerate(zip(corners, axes)):
-        if any(x is None for x in a):
-            continue
-        k = int(np.argmin([abs(np.angle(np.exp(1j * (x - ref)))) for x in a]))
-        if k:
-            out.append((i, np.asarray(c)[perms[k]]))
-    return out
+    usable = [i for i, a in enumerate(axes) if all(x is not None for x in a)]
+    choice: dict[int, int] = {}
+    for _ in range(10):  # then nearest the chosen axes' own mean, until none changes
+        new = {i: int(np.argmin([abs(np.angle(np.exp(1j * (x - ref)))) for x in axes[i]]))
+               for i in usable}  # fmt: skip
+        if new == choice:
+            break
+        choice = new
+        ref = float(np.angle(np.sum([np.exp(1j * axes[i][k]) for i, k in choice.items()])))
+    return [(i, np.asarray(corners[i])[perms[k]]) for i, k in sorted(choice.items()) if k]
 
 
 def _median_of_4(values) -> float | None:
