@@ -26,9 +26,9 @@ from ._albedo import laser_off_model
 from ._laser import (
     JPEG_BLOCK_PX,
     clipped_pixels,
+    displaced,
     laser_in_board,
     laser_removed,
-    displaced,
     near_laser,
     off_local_grid,
     target_holes,
@@ -422,8 +422,9 @@ def line_and_points(
                  "local grid dropped (grey single image)")  # fmt: skip
         else:
             kept = int((near & ~hit).sum())
-            note(f"{int(hit.sum())} point(s) off their local grid dropped, {kept} more within "
-                 "the laser line's reach kept (measured in place; colour JPEG single image)")  # fmt: skip
+            note(f"{int(hit.sum())} point(s) off their local grid dropped, {kept} more "
+                 "within the laser line's reach kept (measured in place; colour JPEG "
+                 "single image)")  # fmt: skip
         reason = _too_few(DetectionResult(corners, True, res.message), target, min_points)
         if reason:
             out.reason = reason + " (the others lie under the laser line)"

@@ -310,9 +310,10 @@ def _refine_centres(norm: np.ndarray, grid: CircleGrid, uv: np.ndarray, light: b
     px (0.098 px in the channel minimum). The levels span most of the edge, as the blob
     detector's do: the mean over them is the centroid of the circle's image, which the
     calibration models (on a noise-free render through the Tessar: 0.007 px RMS from the
-    traced centroids; levels 20-80 % only: 0.017 px, 35-65 %: 0.03 px). A circle under 4 px in radius, at the image's edge or whose levels do not give
-    at least 3 blobs keeps its blob centre, as does one the measurement would move by
-    more than a quarter of its radius.
+    traced centroids; levels 20-80 % only: 0.017 px, 35-65 %: 0.03 px). A circle under
+    4 px in radius, at the image's edge or whose levels do not give at least 3 blobs
+    keeps its blob centre, as does one the measurement would move by more than a
+    quarter of its radius.
     """
     out = uv.copy()
     xy = grid.points_mm[:, :2]
