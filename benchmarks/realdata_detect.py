@@ -137,6 +137,26 @@ def run_opencv(cap: dict, images: dict[int, Path]) -> dict[str, dict[int, np.nda
     return out
 
 
+def x_axis_deg(points: dict[int, np.ndarray], board_mm: np.ndarray) -> np.ndarray:
+    """Per view, the direction (degrees, image frame) of the board's x axis at its centre:
+    a symmetric grid ordered consistently across views has these within 90 degrees of
+    their mean direction."""
+    out = []
+    xy = board_mm[:, :2]
+    c = xy.mean(axis=0)
+    for uv in points.values():
+        ok = np.all(np.isfinite(uv), axis=1)
+        H, _ = cv2.findHomography(xy[ok], uv[ok], 0)
+        q = cv2.perspectiveTransform(np.array([[c, c + [1.0, 0.0]]]), H)[0]
+        out.append(np.degrees(np.arctan2(*(q[1] - q[0])[::-1])))
+    return np.asarray(out)
+
+
+def image_shape(path: Path) -> tuple[int, int]:
+    """`(H, W)` of an image file."""
+    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).shape
+
+
 def calibrate(points: dict[int, np.ndarray], board_mm: np.ndarray, shape) -> tuple:
     """`cv2.calibrateCamera` (k1, k2, p1, p2, k3) on the views' found points: (RMS,
     {k: per-view RMS}); (nan, {}) with fewer than 3 views."""
@@ -182,7 +202,7 @@ def main(argv=None) -> int:
             sf = run_scheimflux(cap, folder)
             t_sf = time.perf_counter() - t0
         cv = run_opencv(cap, images)
-        shape = cv2.imread(str(next(iter(images.values()))), cv2.IMREAD_GRAYSCALE).shape
+        shape = image_shape(next(iter(images.values())))
         board = np.asarray(sf["target"].points_mm, np.float64)
         n_all = len(board)
         sets = {"scheimflux": sf["corners"], **cv}
@@ -196,7 +216,10 @@ def main(argv=None) -> int:
                 print("   ", m)
         if cap.get("laser_free"):
             free_rows.append((cap["name"], len(images), n_line, most))
-        row = dict(name=cap["name"], n=len(images), sf=len(sf["corners"]), kept=kept,
+        ang = x_axis_deg(sf["corners"], board)
+        mean = np.degrees(np.angle(np.mean(np.exp(1j * np.radians(ang)))))
+        spread = float(np.abs((ang - mean + 180.0) % 360.0 - 180.0).max())
+        row = dict(spread=spread, name=cap["name"], n=len(images), sf=len(sf["corners"]), kept=kept,
                    full=n_all * len(sf["corners"]), cv={k: len(v) for k, v in cv.items()},
                    cal={k: (r, float(np.median([p[c] for c in common])) if common else np.nan)
                         for k, (r, p) in cal.items()},
@@ -225,6 +248,8 @@ def _print_row(r: dict, n_common: int) -> None:
     print(f"{r['name']}: scheimflux {r['sf']}/{r['n']} views ({r['kept']}/{r['full']} points), "
           f"OpenCV " + ", ".join(f"{k} {v}" for k, v in r["cv"].items())
           + f"; lines in {r['lines']} views; {r['t']:.0f} s")  # fmt: skip
+    print(f"   board x axis in the image: at most {r['spread']:.0f} deg from its mean "
+          "direction over the views (consistent order: under 90)")
     for k, (rms, med) in r["cal"].items():
         print(f"   calibrateCamera {k}: RMS {rms:.3f} px, median per-view {med:.3f} px "
               f"over {n_common} common views")
