@@ -953,3 +953,33 @@ def test_end_to_end(tmp_path, capsys, request, target_name, layout_name):
         assert r["n_kept"] >= 14  # partly visible boards count
     else:  # whole-or-nothing targets: every view seen whole is kept
         assert r["n_kept"] == r["seen_whole"]
+
+
+def _seen_at(target, deg: float) -> np.ndarray:
+    """The target's points imaged by a similarity turning its x axis to `deg` in the image."""
+    xy = np.asarray(target.points_mm, np.float64)[:, :2]
+    a = np.radians(deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return 400.0 + 40.0 * (xy - xy.mean(axis=0)) @ R.T
+
+
+def test_symmetric_targets_ordered_alike_across_views():
+    # a board held upright in some views and turned a quarter (portrait) in others: the
+    # detectors order a target that looks the same after a half turn by its point 0
+    # nearest the image's top-left, which puts a portrait board's x axis at +90 or -90
+    # degrees by a degree's difference; the views are made to agree (x axes within 90
+    # degrees of their mean), and a target whose looks tell every turn apart is left alone
+    from scheimflux.capture._workflow import consistent_order
+
+    sym = Checkerboard(11, 7, 10.0)  # 12 x 8 squares: a half turn looks the same
+    views = [_seen_at(sym, d) for d in (3.0, 5.0, 88.0, -92.0, 80.0)]
+    turned = consistent_order(sym, views)
+    assert [i for i, _ in turned] == [3]
+    np.testing.assert_allclose(turned[0][1], _seen_at(sym, 88.0), atol=1e-9)
+    assert consistent_order(Checkerboard(11, 8, 10.0), views[:1] + [_seen_at(
+        Checkerboard(11, 8, 10.0), 180.0)]) == []  # fmt: skip
+    sq = CircleGrid(7, 7, 37.5, 18.75)  # quarter turns look the same
+    got = consistent_order(sq, [_seen_at(sq, d) for d in (0.0, 10.0, 100.0, -170.0)])
+    assert sorted(i for i, _ in got) == [2, 3]
+    np.testing.assert_allclose(dict(got)[2], _seen_at(sq, 10.0), atol=1e-9)
+    assert consistent_order(CharucoBoard(8, 6, 0.2, 0.14), [np.zeros((35, 2))] * 2) == []

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..stripe._image import channel_image, estimate_noise
+from ..targets._charuco import _spans_plane
 from ..targets._circles import CircleGrid, circle_diameters_mm
 from ..targets._result import DetectionResult
 from ..targets._target import Target, detect_target
@@ -25,6 +26,7 @@ from ._albedo import laser_off_model
 from ._laser import (
     JPEG_BLOCK_PX,
     clipped_pixels,
+    displaced,
     laser_in_board,
     laser_removed,
     near_laser,
@@ -45,6 +47,65 @@ _BGR = {"blue": 0, "green": 1, "red": 2}
 # 90th percentile on the board) lie on the dark print or next to it (see `_dark_print`).
 _DARK_PRINT = 0.3
 _DARK_REACH = 3
+# A laser line found on a colour single image is kept only where it is a ridge in the
+# image's brightest channel, its median height (centre over the brighter of the two
+# sides 2 FWHM away) above `_RIDGE_K` times that channel's noise: see `_not_a_line`.
+_RIDGE_K = 5.0
+
+
+def _sample(plane: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear values of `plane` at `(u, v)` (clamped to the image)."""
+    h, w = plane.shape
+    u = np.clip(u, 0.0, w - 1.001)
+    v = np.clip(v, 0.0, h - 1.001)
+    u0, v0 = np.floor(u).astype(np.intp), np.floor(v).astype(np.intp)
+    a, b = u - u0, v - v0
+    return ((1 - a) * (1 - b) * plane[v0, u0] + a * (1 - b) * plane[v0, u0 + 1]
+            + (1 - a) * b * plane[v0 + 1, u0] + a * b * plane[v0 + 1, u0 + 1])  # fmt: skip
+
+
+def _not_a_line(image, stripe, uv: np.ndarray, width: float, pitch: float,
+                colour_single: bool) -> str:  # fmt: skip
+    """Why the centres `uv` the extractor found on the board are no laser line ("" when
+    they may be one).
+
+    - Wider than half the target's pitch (FWHM `width` against `pitch`, px): a line that
+      wide cannot be told from the print (a white square between dark ones is a ridge
+      of about a pitch); `clipped_pixels` assumes the same.
+    - Shorter than one pitch end to end: the print's own features (a white gap between
+      two dark squares, a glint) make ridges that short; a laser plane crosses a board.
+    - `colour_single` (board and line in one colour image): not a ridge in the image's
+      brightest channel. A laser adds light; the extractor reads a colour image in the
+      channel, or the channel less the others, where the line stands out most, and
+      there the colour fringes of the lens and of JPEG's half-resolution chroma along
+      the print's and the panel's edges are ridges of a few grey levels. Measured on
+      srv-turntable-webcam's 27 laser-free images: such "lines" were found in 8 (up to
+      132 centres, along the panel's top edge), their median height in the brightest
+      channel -17 to -5.5 grey levels; the real green lines of its laser images and of
+      hjamal3-greenstripe 19-85 levels, the channel's noise 0.6-1.2.
+    """
+    fin = np.all(np.isfinite(uv), axis=1)
+    uv = uv[fin]
+    if pitch > 0 and np.isfinite(width) and width > 0.5 * pitch:
+        return f"{width:.0f} px wide, more than half the target's pitch ({pitch:.0f} px)"
+    a = 0 if stripe.orientation != "horizontal-scan" else 1  # along the line
+    extent = float(np.ptp(uv[:, a])) if len(uv) else 0.0
+    if pitch > 0 and extent < pitch:
+        return f"{extent:.0f} px long, shorter than the target's pitch ({pitch:.0f} px)"
+    if not colour_single or np.ndim(image) != 3:
+        return ""
+    plane = np.asarray(image)[:, :, :3].max(axis=2)
+    d = max(2.0 * (width if np.isfinite(width) else 5.0), 3.0)
+    u, v = uv[:, 0], uv[:, 1]
+    du, dv = (0.0, d) if a == 0 else (d, 0.0)
+    f = plane.astype(np.float32)
+    height = _sample(f, u, v) - np.maximum(_sample(f, u - du, v - dv), _sample(f, u + du, v + dv))
+    noise = estimate_noise(plane)
+    h = float(np.median(height))
+    if h <= _RIDGE_K * noise:
+        return (f"no ridge in the brightest channel (median height {h:.1f} grey levels, "
+                f"noise {noise:.2f}): colour fringes along edges, not a laser")  # fmt: skip
+    return ""
 
 
 def _default_margin(uv: np.ndarray, target: Target) -> float:
@@ -71,6 +132,10 @@ def _too_few(res, target, min_points: int) -> str:
         return res.message or f"{target.kind} not found"
     if n < min_points:
         return f"only {n} target points found; {min_points} needed"
+    pitch = float(getattr(target, "square_mm", None) or target.spacing_mm)
+    if not _spans_plane(np.asarray(target.points_mm, np.float64)[res.mask, :2], pitch):
+        # a board's pose needs its points to span the board's plane, not one line of it
+        return f"the {n} target points found lie on one line of the board: no pose"
     return ""
 
 
@@ -167,7 +232,11 @@ def find_target(image, off, target: Target, *, single: bool, min_points: int,
     if off is None and single and isinstance(target, CircleGrid) and laser_in_board(image):
         opened = laser_removed(image, target)
         found_in = image if opened is None else opened
-    res = detect_target(laser_free(found_in), target, mirrored=mirrored)
+    # the channel minimum keeps a coloured laser out of an image that holds one; a laser-off
+    # image (a pair's board image, a laser-off image) is read in luma, which has the
+    # better signal (JPEG keeps it at full resolution, the colours at half)
+    lit = single and off is None
+    res = detect_target(laser_free(found_in) if lit else found_in, target, mirrored=mirrored)
     return res, opened, _too_few(res, target, min_points)
 
 
@@ -301,35 +370,98 @@ def line_and_points(
             out.stripe_uv = out.stripe.uv[ok]
             note(f"{int(dark.sum())} stripe centre(s) on the dark print or next to it "
                  "dropped (colour JPEG pair, read in luma)")  # fmt: skip
-    if len(out.stripe_uv) == 0 and out.stripe is not None:
+    refused = ""
+    if len(out.stripe_uv):
+        w = out.stripe.width[ok]
+        w = float(np.nanmedian(w)) if np.isfinite(w).any() else float("nan")
+        refused = _not_a_line(image if single else simg, out.stripe, out.stripe_uv, w,
+                              _pitch_px(corners), single)  # fmt: skip
+        if refused:
+            note(f"line of {len(out.stripe_uv)} centre(s) on the board refused: {refused}")
+            ok = np.zeros_like(ok)
+            out.stripe_uv = np.zeros((0, 2))
+    if len(out.stripe_uv) == 0 and out.stripe is not None and not refused:
         note("no laser line found on the board")
     elif out.stripe is not None and out.stripe.speckle_px > 0:
         note(f"speckled laser line: read after smoothing along it, its centres scatter "
              f"{out.stripe.speckle_px:.2f} px about a straight line")  # fmt: skip
+    colour = single and np.ndim(image) == 3 and not grey
     if not shared:
+        if colour and len(out.stripe_uv) == 0:
+            _luma(out, image, target, note)
         return out
     hit = moved if grey else off_local_grid(target, corners)
+    near = np.zeros(len(corners), bool)  # within the line's reach
     base = getattr(out.stripe, "channel", "grey").removesuffix("-minus-others")
-    if not grey and base in _BGR and np.ndim(image) == 3:
+    if not grey and not refused and base in _BGR and np.ndim(image) == 3:
         # a clipped colour line's own pixels in its plain channel: where the line is, even
         # where the extractor refuses its centres (an albedo edge along a clipped line)
         clip = clipped_pixels(image[:, :, _BGR[base]], mask, 0.25 * _pitch_px(corners))
         if len(clip):
-            hit |= near_laser(target, corners, clip, w5, join=False, extra_px=JPEG_BLOCK_PX)
+            near |= near_laser(target, corners, clip, w5, join=False, extra_px=JPEG_BLOCK_PX)
     if len(out.stripe_uv):
         w = out.stripe.width[ok]
         w = float(np.nanmedian(w)) if np.isfinite(w).any() else 5.0
         if stripe_width_px is not None:
             w = max(w, float(stripe_width_px))
-        hit |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
-                          extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
+        near |= near_laser(target, corners, out.stripe_uv, w, orientation=out.stripe.orientation,
+                           extra_px=JPEG_BLOCK_PX if jpeg else 0.0)  # fmt: skip
+    if grey:
+        hit |= near
+    elif near.any():
+        # a colour JPEG: the line's chroma ringing moves some of the points within its
+        # reach (0.16-0.57 px at 13-26 px from a rendered line), not all: those measured
+        # off their untouched neighbours' grid go (on real webcam JPEGs the reach alone
+        # took 30 % of the corners, up to every one of a view)
+        hit |= displaced(target, corners, near)
     if hit.any():
         out.corners = corners = corners.copy()
         corners[hit] = np.nan
-        kind = "grey" if grey else "colour JPEG"
-        note(f"{int(hit.sum())} point(s) within the laser line's reach or off their local "
-             f"grid dropped ({kind} single image)")  # fmt: skip
+        if grey:
+            note(f"{int(hit.sum())} point(s) within the laser line's reach or off their "
+                 "local grid dropped (grey single image)")  # fmt: skip
+        else:
+            kept = int((near & ~hit).sum())
+            note(f"{int(hit.sum())} point(s) off their local grid dropped, {kept} more "
+                 "within the laser line's reach kept (measured in place; colour JPEG "
+                 "single image)")  # fmt: skip
         reason = _too_few(DetectionResult(corners, True, res.message), target, min_points)
         if reason:
             out.reason = reason + " (the others lie under the laser line)"
+    elif near.any():
+        note(f"{int(near.sum())} point(s) within the laser line's reach kept (measured in "
+             "place; colour JPEG single image)")  # fmt: skip
+    elif colour and len(out.stripe_uv) == 0:
+        _luma(out, image, target, note)
     return out
+
+
+def _luma(out: ImageLine, image, target: Target, note: Callable[[str], None]) -> None:
+    """A colour single image with no laser line on the board: its target points measured
+    again in luma (`out.corners` replaced where every found point is found there again,
+    within a quarter of the points' spacing).
+
+    The channel minimum keeps a coloured laser out of the target's image, at a cost: the
+    minimum of three noisy channels, and in a JPEG the colour's half resolution in every
+    channel. Where no line lies on the board the full-resolution luma is better: on 27
+    laser-free webcam JPEGs (srv-turntable-webcam) `calibrateCamera`'s median per-view
+    RMS was 0.109 px from the channel minimum, 0.103 px from luma (OpenCV's own
+    detectors on the grey image: 0.103-0.123)."""
+    corners = out.corners
+    ok = np.all(np.isfinite(corners), axis=1)
+    if not ok.any():
+        return
+    res = detect_target(image, target)
+    if not res.found:
+        return
+    new = res.corners_px
+    fin = np.all(np.isfinite(new), axis=1)
+    if fin.sum() < ok.sum():
+        return
+    d = np.linalg.norm(corners[ok][:, None, :] - new[fin][None, :, :], axis=-1)
+    j = d.argmin(axis=1)
+    if len(set(j)) != ok.sum() or d[np.arange(ok.sum()), j].max() > 0.25 * _pitch_px(corners):
+        return
+    out.corners = corners.copy()
+    out.corners[ok] = new[fin][j]
+    note("no laser line on the board: its points measured in luma")

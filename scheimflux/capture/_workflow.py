@@ -32,7 +32,114 @@ from ._folder import IMAGE_SUFFIXES, find_captures, natural_key, read_image
 from ._image import _is_jpeg, dot_diameters_mm, find_target, line_and_points
 from ._motion import MOVED_PX, BoardMotion, board_motion
 
-__all__ = ["CaptureReport", "detect_captures", "extract_scan"]
+__all__ = ["CaptureReport", "consistent_order", "detect_captures", "extract_scan"]
+
+
+def _turns(target: Target) -> list[np.ndarray]:
+    """The turns of the board about its centre (by 90 degrees k) that leave the target
+    looking the same, as index permutations `perm` (point `k` of the turned order is
+    point `perm[k]` of the given one), the identity first. A checkerboard's colours must
+    match too (a half turn of one with both square counts even); a ChArUco board's
+    markers tell every turn apart."""
+    from ..targets._board import Checkerboard
+    from ..targets._charuco import CharucoBoard
+
+    xy = np.asarray(target.points_mm, np.float64)[:, :2]
+    if isinstance(target, CharucoBoard):
+        return [np.arange(len(xy))]
+    c = xy.mean(axis=0)
+    scale = float(np.abs(xy - c).max()) or 1.0
+    out = []
+    for k in range(4):
+        a = k * math.pi / 2
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        q = (xy - c) @ R.T + c
+        d = np.linalg.norm(q[:, None, :] - xy[None, :, :], axis=-1)
+        perm = d.argmin(axis=1)
+        if d[np.arange(len(xy)), perm].max() > 1e-6 * scale or len(set(perm)) != len(xy):
+            continue
+        if isinstance(target, Checkerboard) and not _colours_kept(target, R, c):
+            continue
+        out.append(perm)
+    return out
+
+
+def _colours_kept(board, R: np.ndarray, c: np.ndarray) -> bool:
+    """Whether turning the checkerboard by `R` about `c` puts every square on one of its
+    own colour (a half turn: when cols + rows is even, e.g. 11 x 7 or 8 x 6 inner
+    corners)."""
+    from ..targets._detect import _squares
+
+    centres, colours = _squares(board.cols, board.rows, board.square_mm)
+    q = (centres - c) @ R.T + c
+    d = np.linalg.norm(q[:, None, :] - centres[None, :, :], axis=-1)
+    j = d.argmin(axis=1)
+    return bool(np.all(d[np.arange(len(q)), j] < 1e-6 * board.square_mm)
+                and np.all(colours[j] == colours))  # fmt: skip
+
+
+def _x_axis(uv: np.ndarray, xy: np.ndarray) -> float | None:
+    """The direction (radians, image frame) of the board's x axis at its points' centre,
+    from the homography of the found points; None without one."""
+    import cv2
+
+    ok = np.all(np.isfinite(uv), axis=1)
+    if ok.sum() < 4:
+        return None
+    H, _ = cv2.findHomography(xy[ok], uv[ok], 0)
+    if H is None:
+        return None
+    c = xy[ok].mean(axis=0)
+    step = np.array([1e-3 * float(np.ptp(xy)), 0.0])
+    q = cv2.perspectiveTransform(np.array([[c, c + step]]), H)[0]
+    du, dv = q[1] - q[0]
+    return math.atan2(dv, du)
+
+
+def consistent_order(target: Target, corners: list[np.ndarray]) -> list[tuple[int, np.ndarray]]:
+    """The views whose point order to turn so that a symmetric target is ordered alike in
+    every view, with the turned points.
+
+    A target that looks the same after a turn (`_turns`: a circle grid by a half turn, a
+    square one by quarter turns, a checkerboard whose square counts are both even by a
+    half turn) is ordered in each image by the board's handedness and then the point 0
+    nearest the image's top-left: a board held upright in one view and turned a quarter
+    in the other (portrait) gets orders a half turn apart from one view to the next
+    (measured: mozhi-lightplane, 7 of 20 views near ±90 degrees, two of them ordered the
+    other way). Here the order of each view is the turn whose board x axis in the image
+    lies nearest the views' mean direction: first the mean of `exp(i n θ)` over the views
+    (`n` the number of turns, θ each view's x axis, so that turned orders agree), its
+    direction nearest the image's +u axis; then the mean of the chosen axes themselves,
+    until no choice changes (a view in portrait, 90 degrees from the rest, then joins
+    the other portrait views: measured on srv-turntable-webcam, ten views at -94 to -90
+    degrees and one at +85 against 80 at -16 to +4).
+
+    **Returns:** `[(index into corners, turned points)]`, only those that change.
+    """
+    perms = _turns(target)
+    n = len(perms)
+    if n < 2 or len(corners) < 2:
+        return []
+    xy = np.asarray(target.points_mm, np.float64)[:, :2]
+    # each view's x axis under each turn of its order (None: no homography)
+    axes = [[_x_axis(np.asarray(c, np.float64)[p], xy) for p in perms] for c in corners]
+    known = [a[0] for a in axes if a[0] is not None]
+    if not known:
+        return []
+    mean = np.angle(np.mean(np.exp(1j * n * np.asarray(known)))) / n
+    # the branch of the mean nearest +u (the top-left rule's own preference)
+    branches = mean + 2 * math.pi * np.arange(n) / n
+    ref = branches[np.argmin(np.abs(np.angle(np.exp(1j * branches))))]
+    usable = [i for i, a in enumerate(axes) if all(x is not None for x in a)]
+    choice: dict[int, int] = {}
+    for _ in range(10):  # then nearest the chosen axes' own mean, until none changes
+        new = {i: int(np.argmin([abs(np.angle(np.exp(1j * (x - ref)))) for x in axes[i]]))
+               for i in usable}  # fmt: skip
+        if new == choice:
+            break
+        choice = new
+        ref = float(np.angle(np.sum([np.exp(1j * axes[i][k]) for i, k in choice.items()])))
+    return [(i, np.asarray(corners[i])[perms[k]]) for i, k in sorted(choice.items()) if k]
 
 
 def _median_of_4(values) -> float | None:
@@ -301,6 +408,11 @@ def detect_captures(
         views.append(View(corners, stripe_uv, cv.names, motion_px, sigma))
         report.kept.append(cv.view)
         report.circle_diameters_mm.extend(dots)
+
+    for i, turned in consistent_order(target, [v.corners_px for v in views]):
+        views[i] = dataclasses.replace(views[i], corners_px=turned)
+        note(views_in[[c.view for c in views_in].index(report.kept[i])],
+             "point order turned to agree with the other views (a symmetric target)")  # fmt: skip
 
     if not views:
         why = "; ".join(f"view {d.view}: {d.reason}" for d in report.dropped[:3])
