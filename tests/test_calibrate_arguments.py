@@ -55,3 +55,21 @@ def test_a_repeated_view_is_named(obs):
     (note,) = _duplicate_views_note(dataclasses.replace(obs, views=views))
     assert note.startswith("view(s) 2 (= 0), 4 (= 1) repeat an earlier view's corners")
     assert _duplicate_views_note(obs) == ()
+
+
+def test_the_centred_closed_form_recovers_a_pinholes_focal_lengths():
+    # independent derivation: the homography of a plane z = 0 seen by K [R | t] is
+    # K [r1 r2 t]; with the principal point at the centre the two focal lengths follow
+    import cv2
+
+    from scheimflux.calibration.core._zhang import centred_intrinsics
+
+    K = np.array([[812.0, 0.0, 319.5], [0.0, 1083.0, 239.5], [0.0, 0.0, 1.0]])
+    Hs = []
+    for rv, t in [((0.3, 0.1, 0.0), (-50, -40, 600)), ((-0.2, 0.35, 0.1), (-30, -60, 700)),
+                  ((0.1, -0.3, -0.2), (-60, -20, 650))]:  # fmt: skip
+        R = cv2.Rodrigues(np.array(rv, dtype=np.float64))[0]
+        H = K @ np.column_stack([R[:, 0], R[:, 1], t])
+        Hs.append(H / H[2, 2])
+    got = centred_intrinsics(Hs, 640, 480)
+    np.testing.assert_allclose(got, K, rtol=1e-9)

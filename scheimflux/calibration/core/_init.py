@@ -19,7 +19,12 @@ from ...camera._thick_lens import ThickLensScheimpflug
 from ...geometry._transforms import Pose, rotation_matrix
 from ...io._observations import Nominal
 from ._solve import ONE_SHOT, least_squares
-from ._zhang import board_homographies, pose_from_homography, zhang_intrinsics
+from ._zhang import (
+    board_homographies,
+    centred_intrinsics,
+    pose_from_homography,
+    zhang_intrinsics,
+)
 
 
 def require_pixel_pitch(obs) -> tuple[float, float]:
@@ -161,13 +166,18 @@ def nominal_thick_lens(obs) -> ThickLensScheimpflug:
 
 
 def closed_form_pinhole(obs) -> tuple[Pinhole, Pose]:
-    """Zhang's closed form: pinhole K with skew and the board poses."""
+    """Zhang's closed form: pinhole K with skew and the board poses; where its five
+    intrinsics are degenerate, K with the principal point at the centre and no skew
+    (`_zhang.centred_intrinsics`)."""
     corners, mask = obs.corners()
     board = obs.board_points_mm
     if np.ptp(board[:, 2]) > 1e-9:
         raise ValueError("the closed-form initialisation needs a planar board (z = 0)")
     Hs = board_homographies(board[:, :2], corners, mask)
-    K = zhang_intrinsics(Hs)
+    try:
+        K = zhang_intrinsics(Hs)
+    except ValueError:  # e.g. strong distortion: a centred principal point, no skew
+        K = centred_intrinsics(Hs, int(obs.width), int(obs.height))
     Rs, ts = [], []
     for i, H in enumerate(Hs):
         if H is None:

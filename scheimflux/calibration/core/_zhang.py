@@ -66,6 +66,41 @@ def zhang_intrinsics(homographies: list[np.ndarray]) -> np.ndarray:
     return np.array([[alpha, gamma, x0], [0.0, beta, y0], [0.0, 0.0, 1.0]])
 
 
+def centred_intrinsics(homographies: list[np.ndarray], width: int, height: int) -> np.ndarray:
+    """Pinhole K from ≥ 2 homographies with the principal point at the image's centre and
+    no skew (OpenCV's `initCameraMatrix2D` start): two unknowns, where Zhang's five fail.
+
+    Zhang's constraints `h₁ᵀ B h₂ = 0`, `h₁ᵀ B h₁ = h₂ᵀ B h₂` with the pixels taken about
+    the centre and `B = diag(a, b, c) ∝ K⁻ᵀ K⁻¹`, solved for `(a, b, c)` by SVD:
+    `fx = sqrt(c / a)`, `fy = sqrt(c / b)`. Lens distortion (a strong barrel on a webcam)
+    biases the homographies enough to leave Zhang's `B` indefinite; this start stays
+    usable, and the solve that follows fits the principal point and the distortion.
+    Raises ValueError where even this is degenerate (every board parallel to the sensor).
+    """
+    Hs = [H for H in homographies if H is not None]
+    if len(Hs) < 2:
+        raise ValueError(
+            f"the closed-form initialisation needs 2 views with 4+ corners, got {len(Hs)}"
+        )
+    c = np.array([(width - 1) / 2, (height - 1) / 2])
+    T = np.array([[1.0, 0.0, -c[0]], [0.0, 1.0, -c[1]], [0.0, 0.0, 1.0]])
+    rows = []
+    for H in Hs:
+        G = T @ H
+        h1, h2 = G[:, 0], G[:, 1]
+        rows.append(h1 * h2)
+        rows.append(h1 * h1 - h2 * h2)
+    V = np.array(rows)
+    scale = np.linalg.norm(V, axis=0)
+    scale[scale == 0] = 1.0
+    abc = np.linalg.svd(V / scale)[2][-1] / scale
+    abc = -abc if abc[2] < 0 else abc
+    a, b, cc = abc
+    if not (a > 0 and b > 0 and cc > 0):
+        raise ValueError("views are degenerate for the closed-form initialisation (tilt the board)")
+    return np.array([[np.sqrt(cc / a), 0.0, c[0]], [0.0, np.sqrt(cc / b), c[1]], [0.0, 0.0, 1.0]])
+
+
 def pose_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Board pose (R_c_b, t_c_b) from K and a board homography, board in front (z > 0)."""
     A = np.linalg.solve(K, H)
