@@ -25,7 +25,9 @@ from scheimflux.reconstruct import stripe_to_camera
 from scheimflux.simulate import paper_rig, simulate_observations
 from scheimflux.targets import Checkerboard
 
-KW = dict(distortion="none", joint=False, throw=False)
+# the paper's sequence with the σ as stated: these tests check the stated covariance
+# (the noise estimate's own tests: test_noise_estimate.py)
+KW = dict(distortion="none", joint=False, throw=False, noise="stated")
 
 
 def _scaled_noise(obs, truth, k):

@@ -168,7 +168,7 @@ def test_cli_opencv_model_and_flags(tmp_path, fake):
         (["--pixel-pitch-mm", "0"], "--pixel-pitch-mm must be one or two positive numbers"),
         (["--pixel-pitch-mm", "1", "2", "3"], "--pixel-pitch-mm must be one or two"),
         (["--focal-length-mm", "-5"], "--focal-length-mm must be positive"),
-        (["--tilt-deg", "0", "120"], "--tilt-deg angles must lie within ±90°"),
+        (["--tilt-deg", "0", "120"], "--tilt-deg angles beyond any Scheimpflug camera"),
     ],
 )
 def test_cli_bad_options(tmp_path, fake, capsys, extra, message):
