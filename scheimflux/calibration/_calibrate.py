@@ -369,6 +369,8 @@ def calibrate(
         noise, stated, data, footprint, shift if joint else None,
         stated_data if noise == "estimate" else None,
     )  # fmt: skip
+    if joint:
+        record = _with_held(record, hold)
     if noise == "estimate" and joint:
         record["solves"] = int(solves)  # the re-solves the estimate took
     return _gated(
@@ -502,6 +504,13 @@ def _noise_record(noise: str, stated: dict, data, footprint_mm, shift, floor=Non
     if shift is not None:
         out["camera_shift"] = shift.to_dict()
     return out
+
+
+def _with_held(record: dict, hold) -> dict:
+    """The record with whether the joint solve held the corners' camera and poses."""
+    if "camera_shift" in record:
+        record["held_corners_geometry"] = "camera" in hold
+    return record
 
 
 def _tilt_hint(obs: Observations, cam_cal):

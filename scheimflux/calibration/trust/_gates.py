@@ -181,9 +181,11 @@ def _noise_line(noise: dict) -> str:
         text += f"; gauge scan {noise['gauge_px']:.3g} px"
     shift = noise.get("camera_shift")
     if shift:
-        held = "held at the corners' camera" if shift["moved"] else "within the corners' σ"
+        held = noise.get("held_corners_geometry", shift["moved"])
+        how = "held at the corners' camera and poses" if held else "within the corners' σ"
         text += (
-            f"; joint camera {held} (chi-square {shift['d2']:.3g}, limit {shift['limit']:.3g})"
+            f"; joint camera {how} (moved: chi-square {shift['d2']:.3g}, limit "
+            f"{shift['limit']:.3g})"
         )
     return text
 
