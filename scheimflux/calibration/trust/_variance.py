@@ -70,12 +70,12 @@ class VarianceComponents:
     redundancy: dict
 
     def factors(self) -> list[float]:
+        """Every group's factor: corners, each view's stripes, the gauge scan (if any)."""
         return [self.corners, *self.stripes.tolist()] + ([] if self.gauge is None else [self.gauge])
 
     def converged(self, tolerance: float = TOLERANCE) -> bool:
         """Whether every factor is within `tolerance` of 1."""
         return all(abs(x - 1.0) <= tolerance for x in self.factors())
-
 
 
 def _group_bounds(data, params) -> dict:
