@@ -202,8 +202,9 @@ def test_joint_and_sequential_on_noise_free_ray_traced_data():
     joint = calibrate(obs, distortion="none", joint=True)
     assert all(f.converged for f in joint.fits.values())
     # the sequential plane leaves the stripe points ~100x their stated sigma off: its
-    # stripe gate fails (the joint calibration, which passed its gates, is the product)
-    assert "stripe" in {g.name for g in seq.quality.failures}
+    # stripe gate fails (the noise estimated from them is beyond what a laser line's
+    # centres reach; the joint calibration, which passed its gates, is the product)
+    assert "stripe noise" in {g.name for g in seq.quality.failures}
     for cal in (seq, joint):
         assert cal.reprojection_rms_px < 0.02
     assert joint.plane_rms_mm < 1e-5

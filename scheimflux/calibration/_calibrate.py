@@ -289,7 +289,10 @@ def calibrate(
         # solve's (the lines bending the board poses), the camera and the board poses
         # are kept as the corners determine them and the laser plane (and stage) fitted
         # to them: held at run time, in the joint solve's compiled program.
-        shift, weights = camera_shift(cam_cal.fit, fit), data
+        # (a thick lens's tilt and axis point are what the lines determine: its corners
+        # alone leave them weak and model-biased, so only the corners' scatter is checked)
+        shift = None if model.startswith("thick-lens") else camera_shift(cam_cal.fit, fit)
+        weights = data
         stated_data, solves = data, 0  # the stated σ: the noise estimate's floor
         corners_alone = _corners_alone_px(cam_cal.fit, sigma_corner_px)
         for _ in range(2):
@@ -309,7 +312,8 @@ def calibrate(
             solves += passes
             if "camera" in hold:
                 break
-            shift = camera_shift(cam_cal.fit, fit)
+            if shift is not None:
+                shift = camera_shift(cam_cal.fit, fit)
         params = fit.params
         fits["joint"] = fit
     elif noise == "estimate":  # the paper's sequence: each group's σ at its own optimum
@@ -446,9 +450,11 @@ def _estimate_noise(fn, fit, data, freeze, hold, release, max_steps, throw, floo
 
 
 def _corners_alone_px(fit, sigma_corner_px: float) -> float:
-    """The corners' σ (px) as the corners-only solve's residuals give it."""
+    """The corners' σ (px) as the corners-only solve's residuals give it, the stated σ
+    its floor (as the noise estimate's)."""
     n, p = int(fit.n_observations), len(fit.labels)
-    return sigma_corner_px * math.sqrt(2.0 * float(fit.cost) / (n - p)) if n > p else math.nan
+    s2 = 2.0 * float(fit.cost) / (n - p) if n > p else math.nan
+    return sigma_corner_px * math.sqrt(max(s2, 1.0))
 
 
 def _held_finding(shift, data, corners_alone_px: float) -> str | None:

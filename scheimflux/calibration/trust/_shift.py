@@ -2,13 +2,16 @@
 
 The corners-only solve (`calibrate_camera`) is the reference: its camera has the
 covariance `Σ = s² (JᵀJ)⁺` of the corners, with `s²` their own variance factor (the
-data's noise, not the stated one). The joint solve adds the laser lines; where they are
-unbiased and weighted by their noise, the joint camera differs from the reference by
+data's noise where it exceeds the stated one; the stated σ is a floor). The joint solve
+adds the laser lines; where they are unbiased and weighted by their noise, the joint
+camera differs from the reference by
 `Δ` with covariance `Σ − Σ_joint ≤ Σ`, so `d² = Δᵀ Σ⁺ Δ` is at most chi-square
 distributed with one degree of freedom per camera parameter. A `d²` beyond its
 `1 − TAIL` quantile is a finding — stripe points off their boards, a line from the wrong
 view, a bent board, stripe weights far too high — not a refinement: the workflow then
-keeps the corners' camera and fits the laser plane (and stage) to it, and says so.
+keeps the corners' camera and fits the laser plane (and stage) to it, and says so. (The
+workflow checks it for the models whose corners determine the camera — OpenCV's, the
+pinhole —, not for the thick lens, whose tilt and axis point the lines determine.)
 """
 
 from __future__ import annotations
@@ -121,6 +124,10 @@ def camera_shift(camera_fit, joint_fit, *, tail: float = TAIL) -> CameraShift | 
     s2 = 2.0 * float(camera_fit.cost) / (n - p) if n > p else math.nan
     if not (math.isfinite(s2) and s2 > 0):
         return None
+    # the stated σ is a floor, as for every σ of the calibration: corners that fit better
+    # than stated (a model error below the noise, noise-free data) do not shrink the
+    # camera's covariance below what the statement allows
+    s2 = max(s2, 1.0)
     d = np.sqrt(np.clip(np.diag(H), 0.0, None))
     d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
     cov = s2 * (d[:, None] * np.linalg.pinv(H * np.outer(d, d), rcond=1e-12) * d[None, :])
